@@ -1,0 +1,359 @@
+"""Rig description files (``rigs/*.yaml``): schema, validation and loading.
+
+A rig names the camera, the filter slider and its positions, the light source, the
+capture plan and, for the simulated backend, the physics of the simulated rig. Files are
+read with ``yaml.safe_load`` and validated; an invalid file raises one
+:class:`~labkit.errors.ConfigError` naming the file, the key path, the bad value and
+what is expected.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from labkit.cfa import CFA_LAYOUTS, layout_from_pixel_format
+from labkit.errors import ConfigError, DataError
+from labkit.spectra import MEASURED_FILTER_COLUMNS, BandpassFilter
+
+RIG_FORMAT = 1
+PositiveFloat = Annotated[float, Field(gt=0)]
+NonNegativeFloat = Annotated[float, Field(ge=0)]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class CameraConfig(_Strict):
+    """The camera: backend, which device, pixel format and spectral response."""
+
+    backend: Literal["aravis", "genicam", "sim"]
+    device: str | None = Field(None, description="device id, serial or IP; None = the first found")
+    cti: str | None = Field(None, description="GenTL producer (.cti) path, genicam backend only")
+    pixel_format: str = "BayerGB12"
+    response: str = Field("Nikon 5100 (NPL)", description="colour-science dataset or CSV path")
+    gain_db: NonNegativeFloat = 0.0
+
+    @field_validator("pixel_format")
+    @classmethod
+    def _bayer(cls, value: str) -> str:
+        try:
+            layout_from_pixel_format(value)
+        except DataError:
+            raise ValueError(
+                "a Bayer pixel format such as BayerGB12 (Bayer{RG,BG,GR,GB}{8,12,12p,16})"
+            ) from None
+        return value
+
+    @model_validator(mode="after")
+    def _cti_for_genicam(self) -> CameraConfig:
+        if self.backend == "genicam" and not self.cti:
+            raise ValueError("the genicam backend needs `cti`: the path of a GenTL producer")
+        return self
+
+    @property
+    def cfa(self) -> str:
+        """CFA layout implied by the pixel format."""
+        return layout_from_pixel_format(self.pixel_format)
+
+
+class FilterConfig(_Strict):
+    """A bandpass filter in a slider position."""
+
+    centre_nm: Annotated[float, Field(ge=300, le=1100)]
+    fwhm_nm: Annotated[float, Field(gt=0, le=200)] = 10.0
+    optical_density: Annotated[float, Field(ge=0, le=10)] = 4.0
+    peak_transmission: Annotated[float, Field(gt=0, le=1)] = 0.85
+    measured: Literal[MEASURED_FILTER_COLUMNS] | None = None  # type: ignore[valid-type]
+
+    def to_filter(self) -> BandpassFilter:
+        """The spectral model of this filter."""
+        return BandpassFilter(
+            self.centre_nm,
+            self.fwhm_nm,
+            self.optical_density,
+            self.peak_transmission,
+            self.measured,
+        )
+
+
+class SliderPosition(_Strict):
+    """One slot of the slider: a name and optionally a filter (None = open)."""
+
+    name: Annotated[str, Field(min_length=1)]
+    filter: FilterConfig | None = None
+
+
+class SliderConfig(_Strict):
+    """The motorised filter slider / wheel."""
+
+    driver: Literal["fw102c", "elliptec", "sim"]
+    port: str = Field(..., description="serial port, e.g. /dev/ttyUSB0, or 'sim'")
+    address: Annotated[int, Field(ge=0, le=15)] = 0
+    positions: dict[Annotated[int, Field(ge=0, le=12)], SliderPosition]
+
+    @model_validator(mode="after")
+    def _names(self) -> SliderConfig:
+        names = [p.name for p in self.positions.values()]
+        if len(set(names)) != len(names):
+            raise ValueError(f"position names must be unique, got {names}")
+        if "dark" in names:
+            raise ValueError("'dark' is reserved for covered-light frames; rename that position")
+        if not self.positions:
+            raise ValueError("at least one position is needed")
+        return self
+
+    def illumination_names(self) -> list[str]:
+        """Names of all illuminations: unfiltered (open) positions first."""
+        return [p.name for p in self.positions.values()]
+
+
+class LightConfig(_Strict):
+    """The light source."""
+
+    source: str = Field("projector", description="'projector', 'E' or a colour-science illuminant")
+
+
+class ExposureConfig(_Strict):
+    """Exposure times, s, for unfiltered and filtered illumination (or 'auto')."""
+
+    unfiltered: list[PositiveFloat] | Literal["auto"] = [0.003, 0.006, 0.012]
+    filtered: list[PositiveFloat] | Literal["auto"] = [0.025, 0.05, 0.1, 0.25, 0.5, 2.0, 3.916]
+
+
+class ReplicateConfig(_Strict):
+    """Frames averaged per exposure (thesis: 15 unfiltered, 5 filtered)."""
+
+    unfiltered: Annotated[int, Field(ge=1, le=1000)] = 15
+    filtered: Annotated[int, Field(ge=1, le=1000)] = 5
+
+
+class PlanConfig(_Strict):
+    """What to capture (thesis Algorithm 10)."""
+
+    scenes: list[Annotated[str, Field(min_length=1)]] = ["disks", "colorchecker"]
+    illuminations: list[str] | Literal["all"] = "all"
+    exposures_s: ExposureConfig = ExposureConfig()
+    replicates: ReplicateConfig = ReplicateConfig()
+    dark_frames: bool = True
+
+
+class SimSensorConfig(_Strict):
+    """Simulated sensor physics."""
+
+    width: Annotated[int, Field(ge=2, le=16384)] = 2448
+    height: Annotated[int, Field(ge=2, le=16384)] = 2048
+    adc_bits: Literal[8, 10, 12, 14, 16] = 12
+    full_well_e: PositiveFloat = 10_000.0
+    gain_dn_per_e: PositiveFloat = 0.40
+    read_noise_e: NonNegativeFloat = 8.0
+    dark_current_e_per_s: NonNegativeFloat = 5.0
+    dark_current_nonuniformity: NonNegativeFloat = 0.2
+    prnu: Annotated[float, Field(ge=0, le=0.5)] = 0.01
+    black_level_dn: NonNegativeFloat = 32.0
+    bloom_fraction: Annotated[float, Field(ge=0, le=1)] = 0.5
+    exposure_jitter_s: NonNegativeFloat = 2e-5
+
+
+class SimLightConfig(_Strict):
+    """Simulated light output and its instability."""
+
+    white_rate_e_per_s: PositiveFloat = Field(
+        8.0e5, description="electrons/s of a perfect white reflector, unfiltered, brightest channel"
+    )
+    flicker: NonNegativeFloat = Field(0.0, description="relative frame-to-frame noise (1σ)")
+    drift_amplitude: NonNegativeFloat = Field(0.0, description="relative slow sinusoidal drift")
+    drift_period_s: PositiveFloat = 600.0
+
+
+class SimLensConfig(_Strict):
+    """Simulated optics (see labkit.sim.lens)."""
+
+    max_shift_px: float = 2.5
+    reference_nm: Annotated[float, Field(ge=350, le=1000)] = 600.0
+    spectral_profile: Literal["singlet", "achromat"] = "singlet"
+    radial_profile: Literal["linear", "nonmonotonic"] = "linear"
+    centre_px: tuple[float, float] | None = None
+    vignetting: Annotated[float, Field(ge=0, lt=1)] = 0.0
+    blur_sigma_px: Annotated[float, Field(ge=0, le=10)] = 0.0
+
+
+class SimSceneConfig(_Strict):
+    """A simulated scene: its type and geometry parameters."""
+
+    type: Literal["disks", "colorchecker", "texture", "flat"]
+    radius_px: PositiveFloat | None = None
+    pitch_px: PositiveFloat | None = None
+    reflectances: str | None = None
+    seed: int | None = None
+    reflectance: Annotated[float, Field(ge=0, le=1)] | None = None
+
+
+class SimConfig(_Strict):
+    """Everything the simulated rig needs beyond the camera/slider description."""
+
+    seed: int = 0
+    spectral_step_nm: Annotated[float, Field(gt=0, le=2)] = 1.0
+    level_step_px: Annotated[float, Field(gt=0, le=1)] = 0.25
+    readout_s: NonNegativeFloat = 0.05
+    sensor: SimSensorConfig = SimSensorConfig()
+    light: SimLightConfig = SimLightConfig()
+    lens: SimLensConfig = SimLensConfig()
+    scenes: dict[str, SimSceneConfig] = {
+        "disks": SimSceneConfig(type="disks"),
+        "colorchecker": SimSceneConfig(type="colorchecker"),
+        "texture": SimSceneConfig(type="texture"),
+    }
+
+
+class Rig(_Strict):
+    """A validated rig description."""
+
+    format: Literal[1]
+    name: str = "rig"
+    camera: CameraConfig
+    slider: SliderConfig
+    light: LightConfig = LightConfig()
+    plan: PlanConfig = PlanConfig()
+    sim: SimConfig | None = None
+    source: str | None = Field(None, exclude=True, description="file the rig was read from")
+
+    @model_validator(mode="after")
+    def _consistent(self) -> Rig:
+        if self.camera.backend == "sim" and self.sim is None:
+            object.__setattr__(self, "sim", SimConfig())
+        if self.plan.illuminations != "all":
+            known = set(self.slider.illumination_names())
+            for name in self.plan.illuminations:
+                if name not in known:
+                    raise ValueError(
+                        f"plan.illuminations names {name!r}, which is not a slider position "
+                        f"(positions: {sorted(known)})"
+                    )
+        if self.sim is not None and self.camera.backend == "sim":
+            for scene in self.plan.scenes:
+                if scene not in self.sim.scenes:
+                    raise ValueError(
+                        f"plan.scenes names {scene!r}, which sim.scenes does not define "
+                        f"(defined: {sorted(self.sim.scenes)})"
+                    )
+        return self
+
+    @property
+    def cfa(self) -> str:
+        """The camera's CFA layout."""
+        return self.camera.cfa
+
+    def illuminations(self) -> list[str]:
+        """Illuminations of the plan, in slider order."""
+        if self.plan.illuminations == "all":
+            return self.slider.illumination_names()
+        return list(self.plan.illuminations)
+
+    def filter_for(self, illumination: str) -> BandpassFilter | None:
+        """The filter of a named slider position (None for an open position)."""
+        for position in self.slider.positions.values():
+            if position.name == illumination:
+                return position.filter.to_filter() if position.filter else None
+        raise ConfigError(
+            f"rig {self.source or self.name!r} has no illumination {illumination!r}; "
+            f"use one of {self.slider.illumination_names()} or 'dark'"
+        )
+
+    def response_source(self) -> str:
+        """The camera response: a dataset name, or a CSV path relative to the rig file."""
+        value = self.camera.response
+        return self.resolve_path(value) if value.lower().endswith(".csv") else value
+
+    def resolve_path(self, value: str) -> str:
+        """A path from the rig file, made absolute relative to the file's folder."""
+        path = Path(value)
+        if path.is_absolute() or self.source is None:
+            return str(path)
+        return str(Path(self.source).parent / path)
+
+
+def _key_path(location: tuple[Any, ...]) -> str:
+    # pydantic adds union-branch tags such as "list[constrained-float]"; they are not keys
+    parts = [str(part) for part in location if "[" not in str(part)]
+    text = ""
+    for part in parts:
+        text += f"[{part}]" if part.isdigit() else (f".{part}" if text else part)
+    return text or "(top level)"
+
+
+def _describe(error: dict[str, Any]) -> str:
+    kind = error["type"]
+    ctx = error.get("ctx", {})
+    if kind == "missing":
+        return "is missing; add it"
+    if kind == "extra_forbidden":
+        return f"is not a known key (value {error['input']!r}); remove it or check its spelling"
+    if kind == "literal_error":
+        return f"is {error['input']!r}; expected {ctx.get('expected')}"
+    if kind in ("greater_than", "greater_than_equal", "less_than", "less_than_equal"):
+        bounds = {"greater_than": ">", "greater_than_equal": "≥", "less_than": "<",
+                  "less_than_equal": "≤"}  # fmt: skip
+        limit = next(iter(ctx.values()), "?")
+        return f"is {error['input']!r}; expected a number {bounds[kind]} {limit}"
+    if kind == "value_error":
+        message = str(ctx.get("error", error["msg"]))
+        return f"is {error['input']!r}; expected {message}" if error["loc"] else message
+    message = error["msg"].removeprefix("Input should be ").removeprefix("Value error, ")
+    return f"is {error['input']!r}; expected {message}"
+
+
+def rig_from_dict(data: Any, *, source: str = "<rig>") -> Rig:
+    """Validate a parsed rig mapping; errors name `source`."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: a rig file must be a YAML mapping, got {type(data).__name__}")
+    try:
+        rig = Rig.model_validate({**data, "source": source})
+    except ValidationError as error:
+        problems = error.errors()
+        first = problems[0]
+        where = {_key_path(problem["loc"]) for problem in problems}  # union branches repeat
+        more = f" (and {len(where) - 1} more problem(s))" if len(where) > 1 else ""
+        if not first["loc"]:
+            raise ConfigError(f"{source}: {_describe(first)}{more}") from None
+        raise ConfigError(f"{source}: {_key_path(first['loc'])} {_describe(first)}{more}") from None
+    return rig
+
+
+def load_rig(path: str | Path) -> Rig:
+    """Read and validate a rig YAML file.
+
+    Raises
+    ------
+    ConfigError
+        One message naming the file, the key path, the bad value and what is expected.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"rig file {path} does not exist; see rigs/ for examples") from None
+    except OSError as error:
+        raise ConfigError(f"rig file {path} cannot be read: {error.strerror}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        mark = getattr(error, "problem_mark", None)
+        where = f" line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        problem = getattr(error, "problem", None) or "invalid YAML"
+        raise ConfigError(f"{path}:{where}: {problem}; fix the YAML syntax") from None
+    return rig_from_dict(data, source=str(path))
+
+
+def default_rig_path() -> Path:
+    """The packaged simulated rig (a copy of ``rigs/simulated.yaml``)."""
+    from importlib import resources
+
+    return Path(str(resources.files("labkit") / "rigs" / "simulated.yaml"))
+
+
+__all__ = ["CFA_LAYOUTS", "RIG_FORMAT", "Rig", "default_rig_path", "load_rig", "rig_from_dict"]

@@ -1,0 +1,67 @@
+"""Spectral → raw camera colour (thesis (3.6)) and spectral → CIE XYZ → sRGB."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from labkit.errors import DataError
+from labkit.spectra.container import Spectra, trapezoid_weights
+from labkit.spectra.datasets import cie_1931_cmfs
+
+
+def integration_matrix(wavelengths: np.ndarray, response: Spectra) -> np.ndarray:
+    """Matrix Ω (n_bands × n_channels) with ``raw = spectral @ Ω`` by the trapezoid rule.
+
+    Parameters
+    ----------
+    wavelengths : ndarray, shape (n,)
+        Band centres of the spectral image, nm (≥ 2, increasing).
+    response : Spectra
+        Channel responses Q_c(λ); must cover every band (no silent extrapolation).
+    """
+    sampled = response.resample(wavelengths, extrapolate="error")
+    return sampled.values * trapezoid_weights(wavelengths)[:, None]
+
+
+def spectral_to_raw(image: np.ndarray, wavelengths: np.ndarray, response: Spectra) -> np.ndarray:
+    """Integrate a spectral image (…, n_bands) into raw colour (…, n_channels).
+
+    Implements thesis (3.6) with G = 1 and the trapezoid rule over `wavelengths` (nm).
+    """
+    image = np.asarray(image)
+    if image.shape[-1] != len(wavelengths):
+        raise DataError(
+            f"spectral image has {image.shape[-1]} bands but {len(wavelengths)} wavelengths"
+        )
+    return image @ integration_matrix(wavelengths, response).astype(image.dtype, copy=False)
+
+
+def spectral_to_xyz(
+    image: np.ndarray, wavelengths: np.ndarray, *, white: np.ndarray | None = None
+) -> np.ndarray:
+    """CIE 1931 XYZ of a spectral image (…, n_bands), trapezoid rule.
+
+    Normalised so that the spectrum `white` (default: 1 in every band, i.e. a perfect
+    reflector under the light the image is relative to) has Y = 1.
+    """
+    cmfs = cie_1931_cmfs()
+    matrix = cmfs.resample(wavelengths, extrapolate="zero").values
+    matrix = matrix * trapezoid_weights(wavelengths)[:, None]
+    reference = np.ones(len(wavelengths)) if white is None else np.asarray(white, float)
+    luminance = reference @ matrix[:, 1]
+    if luminance <= 0:
+        raise DataError("the white spectrum has no luminance over these wavelengths")
+    return np.asarray(image, dtype=np.float64) @ (matrix / luminance)
+
+
+def xyz_to_srgb(xyz: np.ndarray) -> np.ndarray:
+    """Linear CIE XYZ (white Y = 1, D65-adapted) → gamma-encoded sRGB in [0, 1]."""
+    import colour
+
+    rgb = colour.XYZ_to_sRGB(np.asarray(xyz, dtype=np.float64), apply_cctf_encoding=True)
+    return np.clip(np.nan_to_num(rgb, nan=0.0), 0.0, 1.0)
+
+
+def spectral_to_srgb(image: np.ndarray, wavelengths: np.ndarray) -> np.ndarray:
+    """Display sRGB (…, 3) in [0, 1] of a spectral image relative to its light source."""
+    return xyz_to_srgb(spectral_to_xyz(image, wavelengths))

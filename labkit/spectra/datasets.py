@@ -1,0 +1,137 @@
+"""Spectral datasets: camera responses, the CIE 1931 observer, illuminants, reflectances.
+
+Data come from colour-science (copied before any reshaping: its dataset objects are shared
+and ``.align()`` would mutate the cached originals) and from the thesis' measured lab
+spectra shipped in ``labkit/data/thesis_lab_spectra.csv`` (Boost Software License 1.0,
+see ``labkit/data/README.md``).
+"""
+
+from __future__ import annotations
+
+import csv
+import functools
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from labkit.errors import DataError
+from labkit.spectra.container import Spectra
+
+#: Columns of the measured lab file holding bandpass-filter transmissions (relative to the
+#: unfiltered projector light). "442 nm" is the thesis' nominal 450 nm filter, which has a
+#: second transmission peak near 390 nm.
+MEASURED_FILTER_COLUMNS = ("400 nm", "442 nm", "500 nm", "550 nm", "600 nm", "650 nm", "700 nm")
+
+#: The ColorChecker patch names, in chart order (row-major from dark skin to black).
+COLORCHECKER_PATCHES = (
+    "dark skin", "light skin", "blue sky", "foliage", "blue flower", "bluish green",
+    "orange", "purplish blue", "moderate red", "purple", "yellow green", "orange yellow",
+    "blue", "green", "red", "yellow", "magenta", "cyan",
+    "white 9.5 (.05 D)", "neutral 8 (.23 D)", "neutral 6.5 (.44 D)", "neutral 5 (.70 D)",
+    "neutral 3.5 (1.05 D)", "black 2 (1.5 D)",
+)  # fmt: skip
+
+
+def _from_colour(dataset: object, labels: tuple[str, ...] | None = None) -> Spectra:
+    """Copy a colour-science (multi-)spectral distribution into :class:`Spectra`."""
+    copied = dataset.copy()  # never reshape colour's shared cached object
+    values = np.array(copied.values, dtype=np.float64)
+    names = labels or tuple(getattr(copied, "labels", None) or (copied.name,))
+    return Spectra(np.array(copied.wavelengths, dtype=np.float64), values, names)
+
+
+@functools.cache
+def lab_spectra() -> Spectra:
+    """The thesis' measured lab spectra (350–2500 nm at 1 nm), all columns."""
+    source = resources.files("labkit") / "data" / "thesis_lab_spectra.csv"
+    with source.open(newline="") as handle:
+        reader = csv.reader(handle)
+        header = next(reader)
+        rows = np.array([[float(cell) for cell in row] for row in reader])
+    return Spectra(rows[:, 0], rows[:, 1:], tuple(header[1:]))
+
+
+def camera_response(source: str | Path) -> Spectra:
+    """Camera spectral response Q_c(λ) with channels ``("R", "G", "B")``.
+
+    Parameters
+    ----------
+    source : str or Path
+        A colour-science camera-sensitivity dataset name (e.g. ``"Nikon 5100 (NPL)"``)
+        or a CSV file with header ``wavelength_nm,R,G,B`` (relative response).
+    """
+    import colour
+
+    name = str(source)
+    if name in colour.MSDS_CAMERA_SENSITIVITIES:
+        data = _from_colour(colour.MSDS_CAMERA_SENSITIVITIES[name], ("R", "G", "B"))
+        return data
+    path = Path(source)
+    if path.suffix.lower() == ".csv":
+        return _read_response_csv(path)
+    known = ", ".join(sorted(colour.MSDS_CAMERA_SENSITIVITIES))
+    raise DataError(
+        f"unknown camera response {name!r}: give a CSV file (wavelength_nm,R,G,B) "
+        f"or one of the colour-science datasets: {known}"
+    )
+
+
+def _read_response_csv(path: Path) -> Spectra:
+    if not path.is_file():
+        raise DataError(f"camera response file {path} does not exist")
+    with path.open(newline="") as handle:
+        reader = csv.reader(handle)
+        header = [cell.strip() for cell in next(reader, [])]
+        if header != ["wavelength_nm", "R", "G", "B"]:
+            raise DataError(f"{path}: header is {header}; expected wavelength_nm,R,G,B")
+        try:
+            rows = np.array([[float(cell) for cell in row] for row in reader if row])
+        except ValueError as error:
+            raise DataError(f"{path}: non-numeric value ({error})") from None
+    if rows.ndim != 2 or rows.shape[0] < 2:
+        raise DataError(f"{path}: needs at least two rows of wavelength_nm,R,G,B")
+    if np.any(rows[:, 1:] < 0):
+        raise DataError(f"{path}: responses must be ≥ 0")
+    try:
+        return Spectra(rows[:, 0], rows[:, 1:], ("R", "G", "B"))
+    except DataError as error:
+        raise DataError(f"{path}: {error}") from None
+
+
+def write_response_csv(response: Spectra, path: str | Path) -> None:
+    """Write a camera response as CSV ``wavelength_nm,R,G,B``."""
+    rows = np.column_stack([response.wavelengths, response.select(["R", "G", "B"]).values])
+    np.savetxt(path, rows, delimiter=",", header="wavelength_nm,R,G,B", comments="", fmt="%.6g")
+
+
+@functools.cache
+def cie_1931_cmfs() -> Spectra:
+    """The CIE 1931 2° standard observer x̄, ȳ, z̄ (360–830 nm at 1 nm)."""
+    import colour
+
+    return _from_colour(colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"], ("X", "Y", "Z"))
+
+
+def colorchecker_reflectances(source: str = "measured") -> Spectra:
+    """Reflectances of the 24 ColorChecker patches, labelled as in COLORCHECKER_PATCHES.
+
+    Parameters
+    ----------
+    source : {"measured", "BabelColor Average", "ColorChecker N Ohta"}
+        ``"measured"`` uses the thesis' spectrometer readings of its own chart
+        (relative to a white standard); the others are colour-science datasets.
+    """
+    if source == "measured":
+        return lab_spectra().select(COLORCHECKER_PATCHES)
+    import colour
+
+    if source not in colour.SDS_COLOURCHECKERS:
+        raise DataError(
+            f"unknown ColorChecker source {source!r}; use 'measured' or one of "
+            f"{sorted(colour.SDS_COLOURCHECKERS)}"
+        )
+    chart = colour.SDS_COLOURCHECKERS[source]
+    parts = [_from_colour(chart[name]) for name in chart]
+    values = np.column_stack([part.values[:, 0] for part in parts])
+    return Spectra(parts[0].wavelengths, values, COLORCHECKER_PATCHES)

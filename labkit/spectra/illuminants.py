@@ -1,0 +1,65 @@
+"""Light sources: CIE illuminants and a model of the thesis' DLP projector lamp."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from labkit.errors import DataError
+from labkit.spectra.container import Spectra
+
+#: Mercury emission lines of an ultra-high-pressure (UHP) lamp, nm, with relative heights
+#: and pressure-broadened widths (FWHM, nm).
+_UHP_LINES = ((404.7, 0.55, 12.0), (435.8, 0.85, 12.0), (546.1, 1.0, 14.0), (578.0, 0.95, 16.0))
+
+
+def uhp_lamp(wavelengths: np.ndarray) -> Spectra:
+    """Relative spectral power of a UHP projector lamp, peak-normalised.
+
+    The thesis lit its scenes with a DLP projector (Optoma EP739, colour wheel removed),
+    whose light comes from a mercury UHP lamp. The measured lab file holds only the
+    filtered light relative to the unfiltered light, not the lamp itself, so the lamp is
+    modelled: a smooth high-pressure continuum (a 6500 K Planck curve) plus the broadened
+    mercury lines at 405, 436, 546 and 578 nm.
+
+    Parameters
+    ----------
+    wavelengths : ndarray, shape (n,)
+        Sample wavelengths, nm.
+    """
+    w = np.asarray(wavelengths, dtype=np.float64)
+    metres = w * 1e-9
+    planck = 1.0 / (metres**5 * np.expm1(1.4388e-2 / (metres * 6500.0)))
+    power = 0.45 * planck / planck.max()
+    for centre, height, fwhm in _UHP_LINES:
+        sigma = fwhm / 2.3548
+        power = power + height * np.exp(-0.5 * ((w - centre) / sigma) ** 2)
+    return Spectra(w, power / power.max(), ("projector",))
+
+
+def illuminant(name: str, wavelengths: np.ndarray) -> Spectra:
+    """A light source's relative spectral power on `wavelengths` (nm), peak-normalised.
+
+    Parameters
+    ----------
+    name : str
+        ``"projector"`` (the UHP lamp model, see :func:`uhp_lamp`), ``"E"`` (equal
+        energy), or any colour-science illuminant (``"D65"``, ``"A"``, ``"FL2"``, …).
+    wavelengths : ndarray
+        Target grid, nm.
+    """
+    import colour
+
+    w = np.asarray(wavelengths, dtype=np.float64)
+    if name == "projector":
+        return uhp_lamp(w)
+    if name == "E":
+        return Spectra(w, np.ones_like(w), ("E",))
+    if name not in colour.SDS_ILLUMINANTS:
+        raise DataError(
+            f"unknown illuminant {name!r}; use 'projector', 'E' or a colour-science "
+            f"illuminant such as D65, A, FL2"
+        )
+    sd = colour.SDS_ILLUMINANTS[name].copy()
+    data = Spectra(np.array(sd.wavelengths), np.array(sd.values), (name,))
+    data = data.resample(w, extrapolate="constant")
+    return data.scaled(1.0 / data.values.max())
