@@ -66,3 +66,12 @@ def pixel_format_for(layout: str, bits: int) -> str:
     if bits not in (8, 12, 16):
         raise DataError(f"Bayer pixel formats have 8, 12 or 16 bits, not {bits}")
     return f"{stem}{bits}"
+
+
+def pixel_format_bits(pixel_format: str) -> int:
+    """Bits per pixel of a GenICam Bayer format (BayerGB12 → 12, BayerRG12p → 12)."""
+    layout_from_pixel_format(pixel_format)
+    digits = "".join(ch for ch in pixel_format[len("BayerXX") :] if ch.isdigit())
+    if not digits:
+        raise DataError(f"pixel format {pixel_format!r} has no bit depth")
+    return int(digits)

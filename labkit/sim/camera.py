@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from labkit.cfa import pixel_format_for
+from labkit.cfa import pixel_format_bits, pixel_format_for
 from labkit.errors import DeviceError
 from labkit.frame import Frame
 from labkit.sim.world import DARK, SimulatedRig
@@ -207,6 +207,17 @@ class SimCamera:
         self._pending.clear()
 
     @property
+    def next_frame_id(self) -> int:
+        """Id of the next frame; setting it replays the noise of earlier frames."""
+        return self._next_frame_id
+
+    @next_frame_id.setter
+    def next_frame_id(self, value: int) -> None:
+        if value < 1:
+            raise DeviceError(f"camera {self.serial}: frame ids start at 1, got {value}")
+        self._next_frame_id = int(value)
+
+    @property
     def acquiring(self) -> bool:
         """Whether an acquisition is running."""
         return self._acquiring
@@ -288,7 +299,7 @@ class SimCamera:
         counts, actual = self.rig.sensor.expose(
             irradiance, trigger.exposure_s, rng=rng, gain_db=trigger.gain_db, light_level=level
         )
-        bits = int(trigger.pixel_format.removeprefix("Bayer")[2:])
+        bits = pixel_format_bits(trigger.pixel_format)
         if bits == 8:
             image = (counts >> (model.adc_bits - 8)).astype(np.uint8)
         elif bits == 16:

@@ -67,8 +67,12 @@ class CellGrid:
         first = np.floor(start)
         # fraction of the unit box before the next cell boundary
         weight = np.minimum((first + 1.0 - start) * self.cell_px, 1.0)
-        index = np.clip(first.astype(np.int64) + 1, 0, padded_size - 2)
-        return index, weight
+        index = first.astype(np.int64) + 1  # +1: the padding border
+        # beyond the grid both overlapped cells are `outside`: put all weight on a border cell
+        before, after = index < 0, index > padded_size - 2
+        weight[before] = 1.0
+        weight[after] = 0.0
+        return np.clip(index, 0, padded_size - 2), weight
 
 
 @dataclass(frozen=True)

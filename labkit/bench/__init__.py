@@ -1,0 +1,9 @@
+"""The benchmark harness behind ``labkit bench``: each stage writes JSON and Markdown."""
+
+from labkit.bench.harness import Measurement, machine_info, measure, write_report
+from labkit.bench.sim import bench_sim
+
+#: Stage name → benchmark function (rig path, repeats) → (cases, notes).
+BENCHMARKS = {"sim": bench_sim}
+
+__all__ = ["BENCHMARKS", "Measurement", "bench_sim", "machine_info", "measure", "write_report"]

@@ -1,0 +1,44 @@
+"""``labkit bench STAGE --out DIR``: benchmarks written as JSON and Markdown."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def register(commands: argparse._SubParsersAction) -> None:
+    """Add ``labkit bench``."""
+    from labkit.bench import BENCHMARKS
+
+    parser = commands.add_parser(
+        "bench",
+        help="measure speed and memory (JSON + Markdown report)",
+        description="Run benchmarks and write DIR/bench.json and DIR/bench.md with times "
+        "(median of repeats), peak memory and the issue targets they are held to.",
+    )
+    parser.add_argument("stage", choices=[*BENCHMARKS, "all"], help="what to benchmark")
+    parser.add_argument("--out", type=Path, default=Path("bench-out"), help="output folder")
+    parser.add_argument("--rig", type=Path, default=None, help="rig YAML (default: simulated rig)")
+    parser.add_argument("--repeats", type=int, default=3, help="repeats per case (median)")
+    parser.set_defaults(handler=_bench)
+
+
+def _bench(args: argparse.Namespace) -> int:
+    from labkit.bench import BENCHMARKS, write_report
+    from labkit.rig import default_rig_path
+
+    stages = list(BENCHMARKS) if args.stage == "all" else [args.stage]
+    results, notes = {}, []
+    for stage in stages:
+        cases, stage_notes = BENCHMARKS[stage](args.rig or default_rig_path(), repeats=args.repeats)
+        results[stage] = cases
+        notes += stage_notes
+        for case in cases:
+            verdict = "" if case.passed is None else (" pass" if case.passed else " FAIL")
+            target = "" if case.target_s is None else f" (target ≤ {case.target_s:g} s)"
+            print(f"{stage}: {case.name}: {case.seconds:.3f} s{target}{verdict}, "
+                  f"peak {case.peak_mib:.0f} MiB")  # fmt: skip
+    report = write_report(args.out, results, notes)
+    print(f"wrote {report} and {report.with_suffix('.json')}")
+    failed = [c.name for cases in results.values() for c in cases if c.passed is False]
+    return 1 if failed else 0

@@ -1,0 +1,63 @@
+"""Raw frames as lossless 16-bit TIFF with labkit metadata in the ImageDescription tag."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import tifffile
+
+from labkit.errors import DataError
+from labkit.io.atomic import atomic_path
+
+
+def write_raw_tiff(
+    path: str | Path, image: np.ndarray, metadata: dict[str, Any] | None = None
+) -> None:
+    """Write a Bayer mosaic (rows, cols) uint8/uint16 as an uncompressed TIFF, atomically.
+
+    `metadata` (JSON-serialisable) is stored in the ImageDescription tag.
+    """
+    image = np.asarray(image)
+    if image.ndim != 2 or image.dtype not in (np.uint8, np.uint16):
+        raise DataError(
+            f"raw TIFF {path}: need a 2-D uint8/uint16 mosaic, got {image.dtype} {image.shape}"
+        )
+    description = json.dumps({"labkit": metadata or {}}, default=_jsonable)
+    with atomic_path(path) as temp:
+        tifffile.imwrite(
+            temp, image, photometric="minisblack", description=description, metadata=None
+        )
+
+
+def read_raw_tiff(path: str | Path) -> tuple[np.ndarray, dict[str, Any]]:
+    """Read a raw TIFF written by :func:`write_raw_tiff` (or any 2-D grey TIFF).
+
+    Returns the image and the labkit metadata ({} if absent).
+    """
+    path = Path(path)
+    try:
+        with tifffile.TiffFile(path) as tif:
+            image = tif.asarray()
+            description = tif.pages[0].description or ""
+    except FileNotFoundError:
+        raise DataError(f"raw frame {path} does not exist") from None
+    except (tifffile.TiffFileError, ValueError, OSError) as error:
+        raise DataError(f"raw frame {path} is not a readable TIFF ({error})") from None
+    if image.ndim != 2:
+        raise DataError(f"raw frame {path}: expected a 2-D mosaic, got shape {image.shape}")
+    try:
+        metadata = json.loads(description).get("labkit", {})
+    except (json.JSONDecodeError, AttributeError):
+        metadata = {}
+    return image, metadata
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    return str(value)

@@ -1,0 +1,68 @@
+"""Figures people would rather look at than read: spectra of the rig, dispersion fields."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+
+from labkit.io.atomic import atomic_path
+
+
+def save_figure(figure: plt.Figure, path: str | Path) -> None:
+    """Save a matplotlib figure as PNG atomically and close it."""
+    with atomic_path(path) as temp:
+        figure.savefig(temp, format="png", dpi=110, bbox_inches="tight")
+    plt.close(figure)
+
+
+def plot_rig_spectra(rig, path: str | Path) -> None:
+    """Camera response, lamp and filter transmissions of a simulated rig."""
+    w = rig.wavelengths
+    figure, (top, bottom) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+    q = rig.response.resample(w).values
+    for index, colour in enumerate("rgb"):
+        top.plot(w, q[:, index], color=colour, label=f"camera {'RGB'[index]}")
+    top.plot(w, rig.lamp / rig.lamp.max(), "k--", label=f"light: {rig.rig.light.source}")
+    top.set_ylabel("relative response / power")
+    top.legend(loc="upper right", fontsize=8)
+    for name in rig.rig.slider.illumination_names():
+        filt = rig.rig.filter_for(name)
+        if filt is not None:
+            bottom.semilogy(w, filt.transmission(w), label=f"{name} nm")
+    bottom.set_ylim(1e-5, 2)
+    bottom.set_xlabel("wavelength (nm)")
+    bottom.set_ylabel("filter transmission")
+    bottom.legend(ncol=4, fontsize=8)
+    save_figure(figure, path)
+
+
+def plot_dispersion(
+    lens, wavelengths_nm: list[float], path: str | Path, *, step_px: int = 128
+) -> None:
+    """Magnitude (colour) and direction (arrows) of d(x, y, λ) relative to the reference."""
+    rows, cols = lens.shape
+    yy, xx = np.mgrid[0:rows, 0:cols][:, :: max(1, rows // 128), :: max(1, cols // 128)]
+    ay, ax = np.mgrid[step_px // 2 : rows : step_px, step_px // 2 : cols : step_px]
+    figure, axes = plt.subplots(
+        1, len(wavelengths_nm) + 1, figsize=(4.2 * (len(wavelengths_nm) + 1), 3.6)
+    )
+    for axis, wavelength in zip(axes[:-1], wavelengths_nm, strict=False):
+        dx, dy = lens.displacement(xx.astype(float), yy.astype(float), wavelength)
+        image = axis.imshow(np.hypot(dx, dy), extent=(0, cols, rows, 0), cmap="viridis")
+        adx, ady = lens.displacement(ax.astype(float), ay.astype(float), wavelength)
+        axis.quiver(ax, ay, adx, ady, color="white", angles="xy")
+        axis.set_title(f"{wavelength:g} nm vs {lens.reference_nm:g} nm")
+        figure.colorbar(image, ax=axis, label="|d| (px)", shrink=0.8)
+    w = np.linspace(380, 780, 401)
+    axes[-1].plot(w, lens.spectral_factor(w) * lens.max_shift_px)
+    axes[-1].axhline(0, color="grey", lw=0.5)
+    axes[-1].set_xlabel("wavelength (nm)")
+    axes[-1].set_ylabel("corner displacement (px)")
+    axes[-1].set_title(f"{lens.spectral_profile}, {lens.radial_profile}")
+    figure.tight_layout()
+    save_figure(figure, path)
