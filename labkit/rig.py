@@ -182,6 +182,15 @@ class SimLensConfig(_Strict):
     blur_sigma_px: Annotated[float, Field(ge=0, le=10)] = 0.0
 
 
+#: Options each simulated scene type takes (see labkit.sim.scenes).
+SCENE_OPTIONS = {
+    "disks": ("radius_px", "pitch_px"),
+    "colorchecker": ("reflectances",),
+    "texture": ("seed",),
+    "flat": ("reflectance",),
+}
+
+
 class SimSceneConfig(_Strict):
     """A simulated scene: its type and geometry parameters."""
 
@@ -191,6 +200,21 @@ class SimSceneConfig(_Strict):
     reflectances: str | None = None
     seed: int | None = None
     reflectance: Annotated[float, Field(ge=0, le=1)] | None = None
+
+    @model_validator(mode="after")
+    def _options_fit_type(self) -> SimSceneConfig:
+        given = {k for k, v in self.model_dump().items() if v is not None and k != "type"}
+        unused = sorted(given - set(SCENE_OPTIONS[self.type]))
+        if unused:
+            raise ValueError(
+                f"scene type {self.type!r} does not take {unused}; "
+                f"it takes {list(SCENE_OPTIONS[self.type])}"
+            )
+        return self
+
+    def options(self) -> dict[str, Any]:
+        """The options that were given, as keyword arguments of the scene builder."""
+        return {k: v for k, v in self.model_dump().items() if v is not None and k != "type"}
 
 
 class SimConfig(_Strict):
@@ -286,6 +310,16 @@ def _key_path(location: tuple[Any, ...]) -> str:
     return text or "(top level)"
 
 
+def _union_root(location: tuple[Any, ...]) -> str:
+    """Key path up to the first union-branch tag: all branches of one field share it."""
+    root = []
+    for part in location:
+        if "[" in str(part):
+            break
+        root.append(part)
+    return _key_path(tuple(root))
+
+
 def _describe(error: dict[str, Any]) -> str:
     kind = error["type"]
     ctx = error.get("ctx", {})
@@ -302,7 +336,9 @@ def _describe(error: dict[str, Any]) -> str:
         return f"is {error['input']!r}; expected a number {bounds[kind]} {limit}"
     if kind == "value_error":
         message = str(ctx.get("error", error["msg"]))
-        return f"is {error['input']!r}; expected {message}" if error["loc"] else message
+        if not error["loc"] or isinstance(error["input"], dict | list):
+            return message  # a whole section failed a check: do not dump the section
+        return f"is {error['input']!r}; expected {message}"
     message = error["msg"].removeprefix("Input should be ").removeprefix("Value error, ")
     return f"is {error['input']!r}; expected {message}"
 
@@ -316,11 +352,13 @@ def rig_from_dict(data: Any, *, source: str = "<rig>") -> Rig:
     except ValidationError as error:
         problems = error.errors()
         first = problems[0]
-        where = {_key_path(problem["loc"]) for problem in problems}  # union branches repeat
+        where = {_union_root(problem["loc"]) for problem in problems}  # union branches repeat
         more = f" (and {len(where) - 1} more problem(s))" if len(where) > 1 else ""
+        text = _describe(first)
         if not first["loc"]:
-            raise ConfigError(f"{source}: {_describe(first)}{more}") from None
-        raise ConfigError(f"{source}: {_key_path(first['loc'])} {_describe(first)}{more}") from None
+            raise ConfigError(f"{source}: {text}{more}") from None
+        joiner = " " if text.startswith("is ") else ": "
+        raise ConfigError(f"{source}: {_key_path(first['loc'])}{joiner}{text}{more}") from None
     return rig
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from labkit.cfa import pixel_format_bits, pixel_format_for
+from labkit.cfa import pixel_format_for
 from labkit.errors import ConfigError
 from labkit.io import raw_preview, write_png, write_raw_tiff
 from labkit.rig import default_rig_path, load_rig

@@ -13,10 +13,15 @@ from labkit.io.atomic import atomic_write
 
 
 def demosaic_bilinear(raw: np.ndarray, layout: str) -> np.ndarray:
-    """Bilinear demosaic of a (rows, cols) mosaic into (rows, cols, 3) float32."""
+    """Bilinear demosaic of a (rows, cols) mosaic into (rows, cols, 3) float32.
+
+    The mosaic is mirrored by 2 pixels first (which keeps the Bayer phase), so borders
+    are interpolated from real neighbours instead of zero padding.
+    """
     from colour_demosaicing import demosaicing_CFA_Bayer_bilinear
 
-    rgb = demosaicing_CFA_Bayer_bilinear(np.asarray(raw, dtype=np.float64), check_layout(layout))
+    padded = np.pad(np.asarray(raw, dtype=np.float64), 2, mode="reflect")
+    rgb = demosaicing_CFA_Bayer_bilinear(padded, check_layout(layout))[2:-2, 2:-2]
     return rgb.astype(np.float32)
 
 

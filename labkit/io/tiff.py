@@ -44,7 +44,7 @@ def read_raw_tiff(path: str | Path) -> tuple[np.ndarray, dict[str, Any]]:
             description = tif.pages[0].description or ""
     except FileNotFoundError:
         raise DataError(f"raw frame {path} does not exist") from None
-    except (tifffile.TiffFileError, ValueError, OSError) as error:
+    except Exception as error:  # tifffile raises many types on corrupt files
         raise DataError(f"raw frame {path} is not a readable TIFF ({error})") from None
     if image.ndim != 2:
         raise DataError(f"raw frame {path}: expected a 2-D mosaic, got shape {image.shape}")

@@ -159,7 +159,7 @@ class SimCamera:
         number = float(value)
         if not np.isfinite(number) or not feat.minimum <= number <= feat.maximum:
             raise DeviceError(
-                f"camera {self.serial}: {name}={value} {feat.unit} is outside "
+                f"camera {self.serial}: {name}={number:g} {feat.unit} is outside "
                 f"[{feat.minimum:g}, {feat.maximum:g}] {feat.unit}"
             )
         if feat.increment:
@@ -241,7 +241,7 @@ class SimCamera:
             self.scene, self.illumination, self._device_ns,
         )  # fmt: skip
         self._next_frame_id += 1
-        self._device_ns += int((exposure_s + self.rig.rig.sim.readout_s) * 1e9)
+        self._device_ns += round((exposure_s + self.rig.rig.sim.readout_s) * 1e9)
         self._pending.append(trigger)
 
     def fetch(self, timeout_s: float = 5.0) -> Frame:
@@ -300,12 +300,10 @@ class SimCamera:
             irradiance, trigger.exposure_s, rng=rng, gain_db=trigger.gain_db, light_level=level
         )
         bits = pixel_format_bits(trigger.pixel_format)
+        shift = bits - model.adc_bits  # counts are MSB-aligned in the output format
+        image = counts << shift if shift >= 0 else counts >> -shift
         if bits == 8:
-            image = (counts >> (model.adc_bits - 8)).astype(np.uint8)
-        elif bits == 16:
-            image = counts << (16 - model.adc_bits)
-        else:
-            image = counts
+            image = image.astype(np.uint8)
         return Frame(
             image=image,
             frame_id=trigger.frame_id,

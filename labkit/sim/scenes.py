@@ -195,17 +195,20 @@ def disk_pattern(
     *,
     radius_px: float = 14.0,
     pitch_px: float = 64.0,
-    margin_px: float = 40.0,
+    margin_px: float | None = None,
     paper: str = "Printer paper (white)",
     ink: str = "Printer paper (toner)",
     offset_px: tuple[float, float] = (0.0, 0.0),
 ) -> Scene:
     """Black disks on white paper in a square lattice (thesis §3.2.1, §4.2.1).
 
-    Disks fill the view leaving `margin_px` at the borders; `offset_px` shifts the
-    lattice by a sub-pixel amount so centres do not sit on pixel centres.
+    Disks fill the view leaving `margin_px` (default half a pitch) at the borders;
+    `offset_px` shifts the lattice by a sub-pixel amount so centres need not sit on
+    pixel centres.
     """
     rows, cols = shape
+    if margin_px is None:
+        margin_px = pitch_px / 2
     nx = int((cols - 2 * margin_px - 2 * radius_px) // pitch_px) + 1
     ny = int((rows - 2 * margin_px - 2 * radius_px) // pitch_px) + 1
     if nx < 1 or ny < 1:

@@ -140,21 +140,16 @@ class SimulatedRig:
         return SimCamera(self, fast=fast, seed=seed)
 
 
+_SCENE_BUILDERS = {
+    "disks": disk_pattern,
+    "colorchecker": colorchecker_chart,
+    "texture": textured_scene,
+    "flat": flat_field,
+}
+
+
 def _build_scene(cfg: SimSceneConfig, shape: tuple[int, int]) -> Scene:
-    options = {k: v for k, v in cfg.model_dump().items() if v is not None and k != "type"}
-    builders = {
-        "disks": (disk_pattern, {"radius_px", "pitch_px"}),
-        "colorchecker": (colorchecker_chart, {"reflectances"}),
-        "texture": (textured_scene, {"seed"}),
-        "flat": (flat_field, {"reflectance"}),
-    }
-    builder, allowed = builders[cfg.type]
-    unused = set(options) - allowed
-    if unused:
-        raise ConfigError(
-            f"scene type {cfg.type!r} does not take {sorted(unused)}; it takes {sorted(allowed)}"
-        )
-    return builder(shape, **options)
+    return _SCENE_BUILDERS[cfg.type](shape, **cfg.options())
 
 
 def spectra_on(rig: SimulatedRig, spectra: Spectra) -> np.ndarray:

@@ -14,13 +14,17 @@ Extrapolation = Literal["zero", "constant", "error"]
 
 
 def wavelength_grid(start_nm: float, stop_nm: float, step_nm: float) -> np.ndarray:
-    """Evenly spaced wavelengths from `start_nm` to `stop_nm` inclusive, in nm."""
+    """Wavelengths start_nm, start_nm + step_nm, … up to and including `stop_nm`, in nm.
+
+    The last sample is the largest one ≤ `stop_nm` (it equals `stop_nm` when the range is a
+    multiple of the step).
+    """
     if step_nm <= 0 or stop_nm <= start_nm:
         raise DataError(
             f"wavelength grid {start_nm}–{stop_nm} nm with step {step_nm} nm is empty; "
             "use start < stop and a positive step"
         )
-    count = round((stop_nm - start_nm) / step_nm) + 1
+    count = int(np.floor((stop_nm - start_nm) / step_nm + 1e-9)) + 1
     return start_nm + step_nm * np.arange(count, dtype=np.float64)
 
 

@@ -33,7 +33,8 @@ def spectral_to_raw(image: np.ndarray, wavelengths: np.ndarray, response: Spectr
         raise DataError(
             f"spectral image has {image.shape[-1]} bands but {len(wavelengths)} wavelengths"
         )
-    return image @ integration_matrix(wavelengths, response).astype(image.dtype, copy=False)
+    dtype = np.result_type(image.dtype, np.float32)  # integer images integrate in float
+    return image.astype(dtype, copy=False) @ integration_matrix(wavelengths, response).astype(dtype)
 
 
 def spectral_to_xyz(

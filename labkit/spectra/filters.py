@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import ndimage
 
 from labkit.errors import DataError
 from labkit.spectra.container import Spectra
@@ -79,10 +80,12 @@ def measured_transmission(
 ) -> np.ndarray:
     """Transmission of a filter measured in the thesis' lab (relative to the lamp).
 
-    The spectrometer readings far from the passband are noise (0.1–6 % of the peak,
+    The spectrometer readings far from the passband are noise (0.1–9 % of the peak,
     rising where the lamp is dim), so values below `noise_floor` × peak are replaced by
-    the filter's blocking level 10**-OD. Secondary peaks above the floor, such as the
-    450 nm filter's peak near 390 nm, are kept.
+    the filter's blocking level 10**-OD, and so are runs above that floor whose maximum
+    stays under 2 × `noise_floor` × peak (noise, e.g. the 700 nm filter's readings near
+    780 nm). Real secondary peaks, such as the 450 nm filter's near 390 nm (≈ 20 % of
+    its peak), are kept.
     """
     if column not in MEASURED_FILTER_COLUMNS:
         raise DataError(
@@ -91,7 +94,11 @@ def measured_transmission(
     data = lab_spectra().select([column]).resample(wavelengths, extrapolate="zero")
     values = np.clip(data.values[:, 0], 0.0, None)
     floor = 10.0**-optical_density
-    values[values < noise_floor * values.max()] = floor
+    peak = values.max()
+    runs, count = ndimage.label(values >= noise_floor * peak)
+    run_max = ndimage.maximum(values, runs, index=np.arange(1, count + 1))
+    keep = np.isin(runs, 1 + np.flatnonzero(np.asarray(run_max) >= 2 * noise_floor * peak))
+    values[~keep] = floor
     return np.maximum(values, floor)
 
 

@@ -1,0 +1,54 @@
+# labkit — two commands on a fresh Debian machine:
+#   make demo   install everything, then run the main job on the simulated rig
+#   make test   install everything, then run the test suite
+# `make bench` runs the benchmarks and the slow tests.
+
+PYTHON   ?= python3
+VENV     ?= .venv
+PY       := $(VENV)/bin/python
+DEB_PKGS := gir1.2-aravis-0.8 aravis-tools libgirepository1.0-dev libcairo2-dev pkg-config
+STAMP    := $(VENV)/.installed
+DEMO_OUT ?= demo-out
+BENCH_OUT?= bench-out
+PYTEST_ARGS ?=
+
+.PHONY: demo test bench lint system-deps venv clean
+
+demo: venv
+	$(VENV)/bin/labkit demo --out $(DEMO_OUT)
+
+test: venv
+	$(VENV)/bin/ruff check labkit calibration reconstruction tests
+	$(VENV)/bin/ruff format --check labkit calibration reconstruction tests
+	$(VENV)/bin/pytest -m "not slow" $(PYTEST_ARGS)
+
+bench: venv
+	$(VENV)/bin/labkit bench all --out $(BENCH_OUT)
+	$(VENV)/bin/pytest -m slow $(PYTEST_ARGS)
+
+lint: venv
+	$(VENV)/bin/ruff check labkit calibration reconstruction tests
+	$(VENV)/bin/ruff format --check labkit calibration reconstruction tests
+
+# Debian packages from DESIGN.md: installed when missing (needs root, as in CI).
+system-deps:
+	@missing=""; for p in $(DEB_PKGS); do \
+	  dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q "install ok installed" || missing="$$missing $$p"; \
+	done; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing Debian packages:$$missing"; \
+	  if [ "$$(id -u)" = 0 ]; then SUDO=""; else SUDO="sudo"; fi; \
+	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq $$missing \
+	    || { echo "error: could not install$$missing; install them with apt-get (as root) and retry" >&2; exit 1; }; \
+	fi
+
+venv: $(STAMP)
+
+$(STAMP): pyproject.toml | system-deps
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e ".[gige,genicam,dev]"
+	@touch $(STAMP)
+
+clean:
+	rm -rf $(VENV) $(DEMO_OUT) $(BENCH_OUT) .pytest_cache .ruff_cache

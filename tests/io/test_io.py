@@ -1,0 +1,71 @@
+"""Files: atomic writes never leave partial files; raw TIFF round-trips; previews."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from labkit.errors import DataError
+from labkit.io import (
+    atomic_write,
+    raw_preview,
+    read_raw_tiff,
+    to_display,
+    write_png,
+    write_raw_tiff,
+)
+
+
+def test_atomic_write_replaces_only_on_success(tmp_path: Path) -> None:
+    target = tmp_path / "out.bin"
+    target.write_bytes(b"old")
+    with pytest.raises(RuntimeError), atomic_write(target) as handle:
+        handle.write(b"new but half")
+        raise RuntimeError("crash mid-write")
+    assert target.read_bytes() == b"old", "a failed write must leave the old file untouched"
+    assert list(tmp_path.iterdir()) == [target], "no temporary file may be left behind"
+    with atomic_write(target) as handle:
+        handle.write(b"new")
+    assert target.read_bytes() == b"new"
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_raw_tiff_round_trip_with_metadata(tmp_path: Path, dtype: type) -> None:
+    rng = np.random.default_rng(3)
+    image = rng.integers(0, np.iinfo(dtype).max, size=(48, 64), dtype=dtype)
+    meta = {"exposure_s": np.float64(0.025), "scene": "disks", "frame_id": np.int64(7)}
+    write_raw_tiff(tmp_path / "f.tiff", image, meta)
+    back, read_meta = read_raw_tiff(tmp_path / "f.tiff")
+    assert back.dtype == dtype and np.array_equal(back, image), "TIFF must be lossless"
+    assert read_meta == {"exposure_s": 0.025, "scene": "disks", "frame_id": 7}
+
+
+def test_raw_tiff_rejects_bad_input(tmp_path: Path) -> None:
+    with pytest.raises(DataError, match="2-D uint8/uint16"):
+        write_raw_tiff(tmp_path / "f.tiff", np.zeros((4, 4), np.float32))
+    (tmp_path / "corrupt.tiff").write_bytes(b"II*\x00garbage")
+    with pytest.raises(DataError, match=r"corrupt\.tiff is not a readable TIFF"):
+        read_raw_tiff(tmp_path / "corrupt.tiff")
+    with pytest.raises(DataError, match="does not exist"):
+        read_raw_tiff(tmp_path / "missing.tiff")
+
+
+def test_preview_of_a_grey_mosaic_is_neutral_and_normalised() -> None:
+    raw = np.full((64, 80), 1032, dtype=np.uint16)  # flat grey 1000 DN over black level 32
+    image = raw_preview(raw, "GBRG", black_level=32)
+    assert image.shape == (64, 80, 3) and image.dtype == np.uint8
+    assert np.all(image == 255), "a flat field normalises to white"
+
+
+def test_display_downsampling_and_png(tmp_path: Path) -> None:
+    linear = np.zeros((200, 300, 3), np.float32)
+    linear[:, 150:] = 1.0
+    shown = to_display(linear, max_side=100)
+    assert shown.shape == (66, 100, 3), "3× block-averaged to fit 100 px"
+    assert shown[0, 0, 0] == 0 and shown[0, -1, 0] == 255
+    write_png(tmp_path / "p.png", shown)
+    from PIL import Image
+
+    assert np.array_equal(np.asarray(Image.open(tmp_path / "p.png")), shown)
