@@ -40,7 +40,8 @@ def test_rig_check_summarises_the_thesis_plan(
 def test_rig_check_error_is_one_line_without_traceback(tmp_path: Path) -> None:
     bad = tmp_path / "bad.yaml"
     bad.write_text(
-        "format: 1\ncamera: {backend: usb3}\nslider: {driver: sim, port: sim, positions: {1: {name: a}}}\n"
+        "format: 1\ncamera: {backend: usb3}\n"
+        "slider: {driver: sim, port: sim, positions: {1: {name: a}}}\n"
     )
     result = subprocess.run(
         [sys.executable, "-m", "labkit", "rig", "check", str(bad)],
