@@ -40,12 +40,15 @@ def run_demo(out: str | Path, *, rig_path: str | Path | None = None, quick: bool
     exposures = rig.rig.plan.exposures_s
     rows = []
     darks: set[float] = set()
-    pairs = [(s, i) for s in rig.scene_names() for i in rig.rig.slider.illumination_names()]
+    illuminations = rig.rig.slider.illumination_names()
+    pairs = [(s, i) for s in rig.scene_names() for i in illuminations]
+    progress = tqdm(total=len(pairs), desc="demo", unit="frame")
     for scene in rig.scene_names():
-        rig.prerender(scene, rig.rig.slider.illumination_names())
-        for illumination in tqdm(
-            rig.rig.slider.illumination_names(), desc=f"demo {scene}", unit="frame", leave=False
-        ):
+        progress.set_description(f"demo: rendering {scene}")
+        rig.prerender(scene, illuminations)
+        progress.set_description(f"demo: capturing {scene}")
+        for illumination in illuminations:
+            progress.update()
             filtered = rig.rig.filter_for(illumination) is not None
             candidates = exposures.filtered if filtered else exposures.unfiltered
             if candidates == "auto":
@@ -70,6 +73,7 @@ def run_demo(out: str | Path, *, rig_path: str | Path | None = None, quick: bool
                  f"previews/{name}.png")
             )  # fmt: skip
         rig.clear_cache()
+    progress.close()
     camera.set_illumination(DARK)
     for exposure in sorted(darks):
         frame = camera.grab(exposure)[0]
