@@ -15,7 +15,7 @@ from typing import Annotated, Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from labkit.cfa import CFA_LAYOUTS, layout_from_pixel_format
+from labkit.cfa import layout_from_pixel_format
 from labkit.errors import ConfigError, DataError
 from labkit.spectra import MEASURED_FILTER_COLUMNS, BandpassFilter
 
@@ -237,7 +237,7 @@ class SimConfig(_Strict):
 class Rig(_Strict):
     """A validated rig description."""
 
-    format: Literal[1]
+    format: Literal[1] = Field(..., description=f"file format version, {RIG_FORMAT}")
     name: str = "rig"
     camera: CameraConfig
     slider: SliderConfig
@@ -394,4 +394,4 @@ def default_rig_path() -> Path:
     return Path(str(resources.files("labkit") / "rigs" / "simulated.yaml"))
 
 
-__all__ = ["CFA_LAYOUTS", "RIG_FORMAT", "Rig", "default_rig_path", "load_rig", "rig_from_dict"]
+__all__ = ["RIG_FORMAT", "SCENE_OPTIONS", "Rig", "default_rig_path", "load_rig", "rig_from_dict"]

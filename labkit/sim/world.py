@@ -19,7 +19,7 @@ from labkit.sim.lens import Lens
 from labkit.sim.render import render_irradiance
 from labkit.sim.scenes import Scene, colorchecker_chart, disk_pattern, flat_field, textured_scene
 from labkit.sim.sensor import Sensor, SensorModel
-from labkit.spectra import Spectra, camera_response, illuminant, trapezoid_weights, wavelength_grid
+from labkit.spectra import camera_response, illuminant, trapezoid_weights, wavelength_grid
 
 DARK = "dark"
 
@@ -150,8 +150,3 @@ _SCENE_BUILDERS = {
 
 def _build_scene(cfg: SimSceneConfig, shape: tuple[int, int]) -> Scene:
     return _SCENE_BUILDERS[cfg.type](shape, **cfg.options())
-
-
-def spectra_on(rig: SimulatedRig, spectra: Spectra) -> np.ndarray:
-    """Resample `spectra` onto the rig's simulation grid (zero outside their domain)."""
-    return spectra.resample(rig.wavelengths, extrapolate="zero").values
