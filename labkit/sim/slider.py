@@ -36,6 +36,7 @@ for the real device rely on.
 from __future__ import annotations
 
 import collections
+import contextlib
 import errno
 import logging
 import os
@@ -634,10 +635,8 @@ class PtySerialSimulator:
             fds, self._master, self._slave = (self._master, self._slave), -1, -1
         for fd in fds:
             if fd >= 0:
-                try:
+                with contextlib.suppress(OSError):  # already closed by the OS: nothing to do
                     os.close(fd)
-                except OSError:
-                    pass
 
 
 # --------------------------------------------------------------------------------------------
