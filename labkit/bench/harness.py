@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import platform
@@ -80,13 +81,8 @@ def machine_info() -> dict[str, Any]:
     import labkit
 
     cpu = platform.processor()
-    try:
-        with open("/proc/cpuinfo") as handle:
-            cpu = next(
-                (line.split(":", 1)[1].strip() for line in handle if "model name" in line), cpu
-            )
-    except OSError:
-        pass
+    with contextlib.suppress(OSError), open("/proc/cpuinfo") as handle:  # Linux only
+        cpu = next((line.split(":", 1)[1].strip() for line in handle if "model name" in line), cpu)
     return {
         "cpu": cpu,
         "cores": os.cpu_count(),
