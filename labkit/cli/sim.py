@@ -78,7 +78,7 @@ def _render(args: argparse.Namespace) -> int:
     }
     write_raw_tiff(args.out, frame.image, metadata)
     if args.preview:
-        black = rig.sensor.model.black_level_dn * ((frame.image.max() > 4095 and 16) or 1)
+        black = frame.extra["black_level"]
         write_png(args.preview, raw_preview(frame.image, rig.rig.cfa, black_level=black))
     rows, cols = frame.image.shape
     print(

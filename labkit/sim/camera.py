@@ -319,6 +319,7 @@ class SimCamera:
                 "true_exposure_s": actual,
                 "light_level": level,
                 "temperature_c": self.get("DeviceTemperature"),
+                "black_level": model.black_level_dn * 2.0**shift,  # in delivered counts
                 "dark": trigger.illumination == DARK,
             },
         )

@@ -70,6 +70,24 @@ def test_sim_render_writes_a_known_frame(tmp_path: Path, small_rig_file: Path) -
     assert np.array_equal(read_raw_tiff(again)[0], image), "same seed and frame id → same frame"
 
 
+def test_eight_bit_preview_keeps_dark_patches(tmp_path: Path, small_rig_file: Path) -> None:
+    """The preview subtracts the black level in the frame's own counts (2 DN at 8 bits)."""
+    from PIL import Image
+
+    from labkit.rig import load_rig
+    from labkit.sim import SimulatedRig, colorchecker_patch_boxes
+
+    args = ["sim", "render", str(small_rig_file), "--scene", "colorchecker", "--illumination",
+            "unfiltered", "--exposure", "0.006", "--bits", "8", "--out", str(tmp_path / "f.tiff"),
+            "--preview", str(tmp_path / "p.png")]  # fmt: skip
+    assert main(args) == 0
+    preview = np.asarray(Image.open(tmp_path / "p.png"))
+    scene = SimulatedRig(load_rig(small_rig_file)).scene("colorchecker")
+    x0, y0, x1, y1 = colorchecker_patch_boxes(scene)[0]  # dark skin, ≈ 16 counts at 8 bits
+    patch = preview[int(y0) + 1 : int(y1), int(x0) + 1 : int(x1)]
+    assert patch.size and patch.min() > 20, "dark skin must not be clipped to black"
+
+
 @pytest.mark.parametrize(
     ("option", "value", "message"),
     [

@@ -516,6 +516,8 @@ def test_pixel_formats_scale_counts(small_sim_rig: SimulatedRig) -> None:
     assert cameras[16].image.dtype == np.uint16
     np.testing.assert_array_equal(cameras[16].image, raw << 4)
     assert [cameras[b].pixel_format for b in (8, 12, 16)] == ["BayerGB8", "BayerGB12", "BayerGB16"]
+    # the black level (32 DN at 12 bits) is reported in each format's own counts
+    assert [cameras[b].extra["black_level"] for b in (8, 12, 16)] == [2.0, 32.0, 512.0]
     camera = small_sim_rig.camera()
     with pytest.raises(DeviceError, match="not one of"):
         camera.set("PixelFormat", "BayerRG12")
