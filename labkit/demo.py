@@ -37,7 +37,6 @@ def run_demo(out: str | Path, *, rig_path: str | Path | None = None, quick: bool
     rig = SimulatedRig(load_rig(rig_file), shape=QUICK_SHAPE if quick else None)
     camera = rig.camera(fast=True)
     model = rig.sensor.model
-    exposures = rig.rig.plan.exposures_s
     rows = []
     darks: set[float] = set()
     illuminations = rig.rig.slider.illumination_names()
@@ -49,8 +48,7 @@ def run_demo(out: str | Path, *, rig_path: str | Path | None = None, quick: bool
         progress.set_description(f"demo: capturing {scene}")
         for illumination in illuminations:
             progress.update()
-            filtered = rig.rig.filter_for(illumination) is not None
-            candidates = exposures.filtered if filtered else exposures.unfiltered
+            candidates = rig.rig.exposures_for(illumination)
             if candidates == "auto":
                 candidates = list(np.geomspace(1e-3, 4.0, 13))
             exposure = choose_exposure(rig, rig.irradiance(scene, illumination), candidates)
@@ -62,9 +60,10 @@ def run_demo(out: str | Path, *, rig_path: str | Path | None = None, quick: bool
             write_raw_tiff(out / "frames" / f"{name}.tiff", frame.image, _meta(frame))
             write_png(
                 out / "previews" / f"{name}.png",
-                raw_preview(frame.image, model.cfa, black_level=model.black_level_dn, max_side=512),
-            )
-            signal = frame.image.astype(np.float64) - model.black_level_dn
+                raw_preview(frame.image, model.cfa, black_level=frame.extra["black_level"],
+                            max_side=512),
+            )  # fmt: skip
+            signal = frame.image.astype(np.float64) - frame.extra["black_level"]
             saturation = model.full_well_e * model.gain_dn_per_e
             rows.append(
                 (scene, illumination, exposure, float(np.median(signal)),

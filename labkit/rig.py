@@ -278,6 +278,16 @@ class Rig(_Strict):
             return self.slider.illumination_names()
         return list(self.plan.illuminations)
 
+    def exposures_for(self, illumination: str) -> list[float] | Literal["auto"]:
+        """The plan's exposure times (s) for an illumination, or ``"auto"``."""
+        times = self.plan.exposures_s
+        return times.unfiltered if self.filter_for(illumination) is None else times.filtered
+
+    def replicates_for(self, illumination: str) -> int:
+        """The plan's replicate count for an illumination."""
+        counts = self.plan.replicates
+        return counts.unfiltered if self.filter_for(illumination) is None else counts.filtered
+
     def filter_for(self, illumination: str) -> BandpassFilter | None:
         """The filter of a named slider position (None for an open position)."""
         for position in self.slider.positions.values():

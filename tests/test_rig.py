@@ -39,7 +39,6 @@ def test_simulated_rig_loads(sim_rig_path: Path) -> None:
     assert f450 is not None and f450.centre_nm == 450 and f450.measured == "442 nm"
     assert rig.plan.exposures_s.filtered[-1] == pytest.approx(3.916)
     assert rig.plan.replicates.unfiltered == 15 and rig.plan.replicates.filtered == 5
-    assert rig.sim is not None
     assert rig.sim.seed == 2019
     assert (rig.sim.sensor.height, rig.sim.sensor.width) == (2048, 2448)
     assert rig.sim.light.white_rate_e_per_s == pytest.approx(1.2e6)
@@ -50,13 +49,21 @@ def test_simulated_rig_loads(sim_rig_path: Path) -> None:
         rig.filter_for("dark")
 
 
+def test_plan_lookups_per_illumination(sim_rig_path: Path) -> None:
+    rig = load_rig(sim_rig_path)
+    assert rig.exposures_for("unfiltered") == [0.003, 0.006, 0.012]
+    assert rig.exposures_for("700") == [0.025, 0.05, 0.1, 0.25, 0.5, 2.0, 3.916]
+    assert (rig.replicates_for("unfiltered"), rig.replicates_for("450")) == (15, 5)
+    with pytest.raises(ConfigError, match="no illumination '475'"):
+        rig.exposures_for("475")
+
+
 def test_example_flea3_rig_loads(repo_root: Path) -> None:
     rig = load_rig(repo_root / "rigs" / "example-flea3.yaml")
     assert rig.camera.backend == "aravis" and rig.cfa == "GBRG"
     assert rig.sim is None, "a hardware rig has no sim section"
     assert rig.slider.driver == "fw102c" and len(rig.slider.positions) == 8
     f550 = rig.filter_for("550")
-    assert f550 is not None
     assert (f550.centre_nm, f550.fwhm_nm, f550.optical_density) == (550, 10, 4)
     assert f550.measured is None
 

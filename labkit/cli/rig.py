@@ -30,9 +30,8 @@ def plan_frame_count(rig: Rig) -> int:
     total = 0
     exposures_used: dict[float, int] = {}
     for illumination in rig.illuminations():
-        filtered = rig.filter_for(illumination) is not None
-        times = plan.exposures_s.filtered if filtered else plan.exposures_s.unfiltered
-        replicates = plan.replicates.filtered if filtered else plan.replicates.unfiltered
+        times = rig.exposures_for(illumination)
+        replicates = rig.replicates_for(illumination)
         if times == "auto":
             return -1
         total += len(plan.scenes) * len(times) * replicates
