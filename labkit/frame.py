@@ -1,4 +1,4 @@
-"""A captured frame and its metadata, as every camera backend returns it."""
+"""A captured frame and its metadata, as every camera backend returns it, and its plan key."""
 
 from __future__ import annotations
 
@@ -46,3 +46,41 @@ class Frame:
     host_timestamp_s: float
     status: str = "SUCCESS"
     extra: dict[str, Any] = field(default_factory=dict)
+
+
+DARK = "dark"
+
+
+def exposure_label(exposure_s: float) -> str:
+    """A file-name-safe, unique label of an exposure time, e.g. ``12ms``, ``3.916s``."""
+    if exposure_s >= 1.0:
+        return f"{exposure_s:.6g}s"
+    if exposure_s >= 1e-3:
+        return f"{exposure_s * 1e3:.6g}ms"
+    return f"{exposure_s * 1e6:.6g}us"
+
+
+@dataclass(frozen=True, order=True)
+class FrameKey:
+    """Identifies one planned frame. Dark frames have ``scene=None``, illumination ``dark``."""
+
+    scene: str | None
+    illumination: str
+    exposure_s: float
+    replicate: int
+
+    @property
+    def id(self) -> str:
+        """Unique text id, e.g. ``disks/450/100ms/r002`` or ``dark/100ms/r002``."""
+        parts = [self.scene, self.illumination] if self.scene is not None else [DARK]
+        return "/".join([*parts, exposure_label(self.exposure_s), f"r{self.replicate:03d}"])
+
+    @property
+    def path(self) -> str:
+        """File path of the frame inside a session folder."""
+        return f"frames/{self.id}.tiff"
+
+    @property
+    def is_dark(self) -> bool:
+        """Whether this is a dark (covered-light) frame."""
+        return self.scene is None

@@ -132,6 +132,21 @@ class ReplicateConfig(_Strict):
     filtered: Annotated[int, Field(ge=1, le=1000)] = 5
 
 
+class AutoExposureConfig(_Strict):
+    """How ``auto`` exposure lists are chosen (labkit.protocol.bracketing).
+
+    A pixel is properly exposed when its dark-subtracted value lies between
+    `low_fraction` and `high_fraction` of the dark-subtracted saturation level; the
+    predicted window is narrowed by `margin` at both ends against metering noise.
+    """
+
+    low_fraction: Annotated[float, Field(gt=0, lt=0.5)] = 0.02
+    high_fraction: Annotated[float, Field(gt=0.5, le=1)] = 0.95
+    margin: Annotated[float, Field(ge=1, le=3)] = 1.15
+    max_exposure_s: PositiveFloat = Field(4.0, description="longest exposure auto may choose, s")
+    steps_per_octave: Annotated[int, Field(ge=1, le=16)] = 4
+
+
 class PlanConfig(_Strict):
     """What to capture (thesis Algorithm 10)."""
 
@@ -140,6 +155,7 @@ class PlanConfig(_Strict):
     exposures_s: ExposureConfig = ExposureConfig()
     replicates: ReplicateConfig = ReplicateConfig()
     dark_frames: bool = True
+    auto: AutoExposureConfig = AutoExposureConfig()
 
 
 class SimSensorConfig(_Strict):

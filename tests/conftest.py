@@ -58,3 +58,53 @@ def small_rig_file(tmp_path_factory: pytest.TempPathFactory, sim_rig_path: Path)
     path = tmp_path_factory.mktemp("rig") / "small.yaml"
     path.write_text(yaml.safe_dump(data))
     return path
+
+
+def write_rig(folder: Path, base: Path, **changes: object) -> Path:
+    """Write a variant of the rig file `base` into `folder`; `changes` maps dotted keys to values.
+
+    Example: ``write_rig(tmp, sim_rig_path, **{"sim.sensor.width": 96, "plan.scenes": ["flat"]})``.
+    """
+    import yaml
+
+    data = yaml.safe_load(base.read_text())
+    for dotted, value in changes.items():
+        node = data
+        *parents, leaf = dotted.split(".")
+        for key in parents:
+            node = node.setdefault(int(key) if key.isdigit() else key, {})
+        node[int(leaf) if leaf.isdigit() else leaf] = value
+    path = folder / "rig.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+#: A small, quick capture plan: 2 scenes × (unfiltered 2×3 + 2 filters 2×2×2) + darks = 38 frames.
+QUICK_PLAN = {
+    "sim.sensor.width": 96,
+    "sim.sensor.height": 64,
+    "sim.scenes.disks": {"type": "disks", "radius_px": 4, "pitch_px": 16},
+    "plan.illuminations": ["unfiltered", "450", "600"],
+    "plan.exposures_s": {"unfiltered": [0.003, 0.012], "filtered": [0.1, 0.5]},
+    "plan.replicates": {"unfiltered": 3, "filtered": 2},
+}
+QUICK_PLAN_FRAMES = 2 * (2 * 3 + 2 * 2 * 2) + (2 * 3 + 2 * 2)
+
+
+@pytest.fixture
+def quick_rig_file(tmp_path: Path, sim_rig_path: Path) -> Path:
+    """The simulated rig with a 64 × 96 sensor and a 38-frame plan (see QUICK_PLAN)."""
+    return write_rig(tmp_path, sim_rig_path, **QUICK_PLAN)
+
+
+@pytest.fixture
+def make_rig(tmp_path: Path, sim_rig_path: Path):
+    """Factory: ``make_rig(**{"dotted.key": value})`` writes a variant of the simulated rig."""
+    counter = iter(range(1000))
+
+    def make(**changes: object) -> Path:
+        folder = tmp_path / f"rig{next(counter)}"
+        folder.mkdir()
+        return write_rig(folder, sim_rig_path, **changes)
+
+    return make

@@ -11,10 +11,10 @@ import argparse
 import sys
 
 import labkit
-from labkit.cli import bench, demo, rig, sim
+from labkit.cli import bench, capture, demo, devices, rig, session, sim
 from labkit.errors import LabkitError
 
-_MODULES = (rig, sim, demo, bench)
+_MODULES = (rig, devices, capture, session, sim, demo, bench)
 
 
 def build_parser() -> argparse.ArgumentParser:

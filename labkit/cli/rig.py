@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from labkit.protocol.plan import build_plan
 from labkit.rig import Rig, load_rig
 
 
@@ -22,24 +23,9 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def plan_frame_count(rig: Rig) -> int:
-    """Frames a fixed-exposure plan takes (scenes × exposures × replicates, plus darks).
-
-    Returns -1 for auto-bracketed plans, whose count depends on the scene.
-    """
-    plan = rig.plan
-    total = 0
-    exposures_used: dict[float, int] = {}
-    for illumination in rig.illuminations():
-        times = rig.exposures_for(illumination)
-        replicates = rig.replicates_for(illumination)
-        if times == "auto":
-            return -1
-        total += len(plan.scenes) * len(times) * replicates
-        for t in times:
-            exposures_used[t] = max(exposures_used.get(t, 0), replicates)
-    if plan.dark_frames:
-        total += sum(exposures_used.values())
-    return total
+    """Frames the rig's plan stores (-1 when auto-bracketing decides at run time)."""
+    plan = build_plan(rig)
+    return -1 if plan.pending_meters else plan.frame_count
 
 
 def _check(args: argparse.Namespace) -> int:

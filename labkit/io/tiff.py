@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 from pathlib import Path
 from typing import Any
@@ -13,6 +14,28 @@ from labkit.errors import DataError
 from labkit.io.atomic import atomic_path
 
 
+def encode_raw_tiff(image: np.ndarray, metadata: dict[str, Any] | None = None) -> bytes:
+    """A Bayer mosaic (rows, cols) uint8/uint16 as the bytes of an uncompressed TIFF.
+
+    `metadata` (JSON-serialisable) is stored in the ImageDescription tag as
+    ``{"shape": [rows, cols], "labkit": metadata}`` (the leading ``shape`` keeps the
+    tag a valid tifffile JSON description whatever keys `metadata` holds).
+    """
+    image = np.asarray(image)
+    if image.ndim != 2 or image.dtype not in (np.uint8, np.uint16):
+        raise DataError(
+            f"a raw frame must be a 2-D uint8/uint16 mosaic, got {image.dtype} {image.shape}"
+        )
+    description = json.dumps(
+        {"shape": list(image.shape), "labkit": metadata or {}}, default=_jsonable
+    )
+    buffer = io.BytesIO()
+    tifffile.imwrite(
+        buffer, image, photometric="minisblack", description=description, metadata=None
+    )
+    return buffer.getvalue()
+
+
 def write_raw_tiff(
     path: str | Path, image: np.ndarray, metadata: dict[str, Any] | None = None
 ) -> None:
@@ -20,16 +43,12 @@ def write_raw_tiff(
 
     `metadata` (JSON-serialisable) is stored in the ImageDescription tag.
     """
-    image = np.asarray(image)
-    if image.ndim != 2 or image.dtype not in (np.uint8, np.uint16):
-        raise DataError(
-            f"raw TIFF {path}: need a 2-D uint8/uint16 mosaic, got {image.dtype} {image.shape}"
-        )
-    description = json.dumps({"labkit": metadata or {}}, default=_jsonable)
+    try:
+        data = encode_raw_tiff(image, metadata)
+    except DataError as error:
+        raise DataError(f"raw TIFF {path}: {error}") from None
     with atomic_path(path) as temp:
-        tifffile.imwrite(
-            temp, image, photometric="minisblack", description=description, metadata=None
-        )
+        temp.write_bytes(data)
 
 
 def read_raw_tiff(path: str | Path) -> tuple[np.ndarray, dict[str, Any]]:

@@ -17,7 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from labkit.cfa import pixel_format_bits, pixel_format_for
+from labkit.cfa import layout_from_pixel_format, pixel_format_bits, pixel_format_for
+from labkit.devices.camera import Bounds, CameraIdentity
 from labkit.errors import DeviceError
 from labkit.frame import Frame
 from labkit.sim.world import DARK, SimulatedRig
@@ -62,6 +63,7 @@ class SimCamera:
         Frame-noise seed (default: the rig's seed).
     """
 
+    backend = "sim"
     vendor = "labkit"
     firmware = "sim-1.0"
 
@@ -109,18 +111,54 @@ class SimCamera:
         self._next_frame_id = 1
         self._frames_left: int | None = None
         self._device_ns = 0
+        self._delivered = 0
         self._open = True
 
     # -- identity and features -----------------------------------------------------------
     @property
-    def identity(self) -> dict[str, str]:
+    def identity(self) -> CameraIdentity:
         """Vendor, model, serial and firmware strings."""
-        return {
-            "vendor": self.get("DeviceVendorName"),
-            "model": self.get("DeviceModelName"),
-            "serial": self.get("DeviceSerialNumber"),
-            "firmware": self.get("DeviceFirmwareVersion"),
-        }
+        return CameraIdentity(
+            vendor=self.get("DeviceVendorName"),
+            model=self.get("DeviceModelName"),
+            serial=self.get("DeviceSerialNumber"),
+            firmware=self.get("DeviceFirmwareVersion"),
+        )
+
+    @property
+    def pixel_format(self) -> str:
+        """Current pixel format, e.g. ``BayerGB12``."""
+        return self.get("PixelFormat")
+
+    def set_pixel_format(self, pixel_format: str) -> None:
+        """Choose the pixel format (Bayer 8/12/16 in the sensor's layout)."""
+        self.set("PixelFormat", pixel_format)
+
+    @property
+    def cfa(self) -> str:
+        """CFA layout of the current pixel format."""
+        return layout_from_pixel_format(self.pixel_format)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """Image (rows, cols)."""
+        return int(self.get("Height")), int(self.get("Width"))
+
+    def exposure_bounds(self) -> Bounds:
+        """Exposure time range and step, s."""
+        return self._bounds("ExposureTime", 1e-6)
+
+    def gain_bounds(self) -> Bounds:
+        """Gain range and step, dB."""
+        return self._bounds("Gain", 1.0)
+
+    def _bounds(self, name: str, scale: float) -> Bounds:
+        feat = self.feature(name)
+        return Bounds(feat.minimum * scale, feat.maximum * scale, (feat.increment or 0) * scale)
+
+    def stream_statistics(self) -> dict[str, int]:
+        """Frames delivered (a simulated stream never loses one)."""
+        return {"completed": self._delivered, "failed": 0, "retries": 0}
 
     def feature_names(self) -> list[str]:
         """All feature names."""
@@ -259,12 +297,19 @@ class SimCamera:
         if not self.fast:
             time.sleep(trigger.exposure_s + self.rig.rig.sim.readout_s)
         frame = self._render(trigger)
+        self._delivered += 1
         if self._frames_left == 0 and not self._pending:
             self._acquiring = False
         return frame
 
     def grab(self, exposure_s: float, n: int = 1) -> list[Frame]:
         """Capture `n` software-triggered frames at `exposure_s` seconds."""
+        bounds = self.exposure_bounds()
+        if not bounds.contains(exposure_s):
+            raise DeviceError(
+                f"camera {self.serial}: exposure {exposure_s:g} s is outside "
+                f"[{bounds.minimum:g}, {bounds.maximum:g}] s"
+            )
         self.set("ExposureTime", exposure_s * 1e6)
         self.set("TriggerMode", "On")
         if not self._acquiring:
@@ -290,6 +335,12 @@ class SimCamera:
     def _check_open(self) -> None:
         if not self._open:
             raise DeviceError(f"camera {self.serial} is closed")
+
+    def _saturation_dn(self, gain_db: float) -> float:
+        """Counts of a full pixel (full well or ADC limit, whichever comes first)."""
+        model = self.rig.sensor.model
+        full = model.full_well_e * model.gain_factor(gain_db) + model.black_level_dn
+        return float(min(np.floor(full + 0.5), model.adc_max))
 
     def _render(self, trigger: _Trigger) -> Frame:
         rng = np.random.default_rng(np.random.SeedSequence([self.seed, trigger.frame_id]))
@@ -320,6 +371,7 @@ class SimCamera:
                 "light_level": level,
                 "temperature_c": self.get("DeviceTemperature"),
                 "black_level": model.black_level_dn * 2.0**shift,  # in delivered counts
+                "saturation_dn": self._saturation_dn(trigger.gain_db) * 2.0**shift,
                 "dark": trigger.illumination == DARK,
             },
         )

@@ -94,7 +94,7 @@ def test_eight_bit_preview_keeps_dark_patches(tmp_path: Path, small_rig_file: Pa
         ("--scene", "disk", "defines no scene 'disk'"),
         ("--illumination", "475", "no illumination '475'"),
         ("--exposure", "-1", "--exposure must be > 0 s"),
-        ("--exposure", "100", "ExposureTime=1e+08 us is outside"),
+        ("--exposure", "100", "exposure 100 s is outside"),
     ],
 )
 def test_sim_render_bad_input(

@@ -1,0 +1,179 @@
+"""``labkit capture``: run a rig's capture plan into a crash-safe, resumable session."""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+from labkit.rig import default_rig_path, load_rig
+
+
+def register(commands: argparse._SubParsersAction) -> None:
+    """Add ``labkit capture``."""
+    parser = commands.add_parser(
+        "capture",
+        help="run the exposure-bracketing + dark-frame protocol into a session folder",
+        description="Run the rig's capture plan (thesis Algorithm 10): for every scene, the "
+        "open slot and each filter, grab the replicates at every exposure time (or at "
+        "auto-bracketed ones), then dark frames for every exposure used. Frames are stored "
+        "crash-safely; running the same command on an unfinished session resumes it, "
+        "re-capturing only missing or corrupt frames. Ctrl-C stops after the current frame.",
+    )
+    parser.add_argument("rig", nargs="?", help="rig YAML (default: the simulated rig)")
+    parser.add_argument("--session", type=Path, required=True, help="session folder")
+    parser.add_argument(
+        "--dry-run",
+        action="store_true",
+        help="print the plan, check it against the devices' bounds, move nothing",
+    )
+    parser.add_argument(
+        "--fast",
+        action="store_true",
+        help="simulated devices do not wait for exposures and motor moves",
+    )
+    parser.add_argument(
+        "--yes",
+        action="store_true",
+        help="do not ask the operator to change scenes or cover the light",
+    )
+    parser.add_argument(
+        "--shape",
+        type=_shape,
+        default=None,
+        metavar="ROWSxCOLS",
+        help="simulated sensor size (default: the rig's)",
+    )
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.set_defaults(handler=_capture)
+
+
+def _shape(text: str) -> tuple[int, int]:
+    try:
+        rows, cols = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected ROWSxCOLS such as 256x320, got {text!r}"
+        ) from None
+    return rows, cols
+
+
+class _Bar:
+    """tqdm progress: frames done / total, current step, ETA."""
+
+    def __init__(self, enabled: bool) -> None:
+        from tqdm import tqdm
+
+        self.bar = tqdm(
+            total=0, unit="frame", desc="capture", disable=not enabled, dynamic_ncols=True
+        )
+
+    def set_total(self, total: int, done: int) -> None:
+        self.bar.total = total
+        self.bar.n = done
+        self.bar.refresh()
+
+    def advance(self, frames: int) -> None:
+        self.bar.update(frames)
+
+    def set_step(self, text: str) -> None:
+        self.bar.set_postfix_str(text, refresh=False)
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+def _capture(args: argparse.Namespace) -> int:
+    from labkit.protocol import Engine, build_plan, validate_plan
+    from labkit.protocol.engine import CaptureStopped
+    from labkit.protocol.hardware import open_hardware
+    from labkit.session import Session
+
+    rig_path = args.rig or default_rig_path()
+    rig = load_rig(rig_path)
+    if args.shape and rig.sim is not None:
+        sensor = rig.sim.sensor.model_copy(update={"height": args.shape[0], "width": args.shape[1]})
+        rig = rig.model_copy(update={"sim": rig.sim.model_copy(update={"sensor": sensor})})
+    if args.dry_run:
+        return _dry_run(rig, args, build_plan, validate_plan, open_hardware)
+    session, resumed = Session.open_for(args.session, rig)
+    if resumed and session.status in ("complete", "imported"):
+        print(
+            f"session {args.session} is already {session.status} "
+            f"({len(session.records)} frames); nothing to do"
+        )
+        return 0
+    if resumed:
+        print(
+            f"resuming session {args.session} ({len(session.records)} frames stored, "
+            f"last status {session.status})",
+            file=sys.stderr,
+        )
+    stop = threading.Event()
+    previous = signal.getsignal(signal.SIGINT)
+
+    def on_interrupt(signum: int, frame: Any) -> None:
+        if stop.is_set():
+            raise KeyboardInterrupt
+        stop.set()
+        print("\nlabkit: stopping after the current frame (Ctrl-C again to abort)", file=sys.stderr)
+
+    signal.signal(signal.SIGINT, on_interrupt)
+    bar = _Bar(enabled=not args.no_progress)
+    try:
+        with open_hardware(rig, fast=args.fast, assume_done=args.yes) as hardware:
+            engine = Engine(
+                rig,
+                hardware.camera,
+                hardware.slider,
+                hardware.stage,
+                session,
+                progress=bar,
+                stop=stop,
+            )
+            report = engine.run()
+    except CaptureStopped as stopped:
+        bar.close()
+        print(f"labkit: {stopped}", file=sys.stderr)
+        return 130
+    finally:
+        bar.close()
+        signal.signal(signal.SIGINT, previous)
+    mb = report.bytes_written / 1e6
+    print(
+        f"session {args.session}: complete, {len(session.records)} frames "
+        f"({report.stored_now} stored now in {report.elapsed_s:.1f} s, "
+        f"{report.frames_per_s:.1f} frames/s, {mb:.0f} MB)"
+    )
+    for name, text in report.brackets.items():
+        print(f"  auto {name}: {text}")
+    if report.recaptured:
+        print(f"  re-captured {len(report.recaptured)} missing or corrupt frame(s)")
+    return 0
+
+
+def _dry_run(rig, args, build_plan, validate_plan, open_hardware) -> int:
+    from labkit.session import SESSION_FILE, Session
+
+    brackets = {}
+    stored: set[str] = set()
+    if (args.session / SESSION_FILE).exists():
+        session, _ = Session.open_for(args.session, rig)
+        brackets, stored = session.brackets, set(session.records)
+    plan = build_plan(rig, brackets)
+    print(plan.describe())
+    if stored:
+        todo = sum(key.id not in stored for key in plan.keys())
+        print(f"session {args.session}: {len(stored)} frames stored, {todo} still to capture")
+    with open_hardware(rig, fast=True, assume_done=True) as hardware:
+        validate_plan(plan, hardware.camera, hardware.slider)
+        bounds = hardware.camera.exposure_bounds()
+        print(
+            f"checked against {hardware.camera.identity} (exposure "
+            f"{bounds.minimum:g}–{bounds.maximum:g} s) and the slider on {hardware.slider.port} "
+            f"({hardware.slider.slot_count} slots): OK"
+        )
+    return 0

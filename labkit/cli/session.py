@@ -1,0 +1,89 @@
+"""``labkit session show|import``: inspect sessions, build one from other software's frames."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from labkit.errors import ConfigError
+from labkit.rig import default_rig_path, load_rig
+
+
+def register(commands: argparse._SubParsersAction) -> None:
+    """Add ``labkit session …``."""
+    parser = commands.add_parser("session", help="inspect or import capture sessions")
+    actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
+    show = actions.add_parser(
+        "show",
+        help="summarise a session: status, devices, frames per scene/illumination/exposure",
+        description="Print what a session holds and how far its plan got. With --verify, "
+        "re-hash every frame and report missing or corrupt ones (a resume re-captures them).",
+    )
+    show.add_argument("session", type=Path, help="session folder")
+    show.add_argument("--verify", action="store_true", help="check every frame's sha256")
+    show.set_defaults(handler=_show)
+    imp = actions.add_parser(
+        "import",
+        help="build a session from TIFF frames saved by other software",
+        description="Match the TIFF files of FOLDER against --pattern (fields {scene}, "
+        "{illumination}, {exposure} with unit, {replicate}; other {names} and * match "
+        "anything) and store them as a labkit session. Example for FlyCapture-style names "
+        "d1_disks32cmV2_450nm_100ms_2019-02-08-174831-0004.tif: --pattern "
+        "'d1_{scene}_{illumination}_{exposure}_{date}-{replicate}.tif' --pattern "
+        "'d1_dark_{exposure}_{date}-{replicate}.tif'.",
+    )
+    imp.add_argument("session", type=Path, help="new session folder")
+    imp.add_argument("--from", dest="source", type=Path, required=True, help="folder of TIFFs")
+    imp.add_argument(
+        "--pattern",
+        action="append",
+        required=True,
+        help="file-name pattern (repeatable; the first that matches wins)",
+    )
+    imp.add_argument(
+        "--rig", default=None, help="rig YAML the frames came from (default: simulated)"
+    )
+    imp.add_argument(
+        "--map",
+        action="append",
+        default=[],
+        metavar="TEXT=SLOT",
+        help="map an illumination text in file names to a rig slot name",
+    )
+    imp.set_defaults(handler=_import)
+
+
+def _show(args: argparse.Namespace) -> int:
+    from labkit.session import Session
+    from labkit.session.summary import summarise
+
+    session = Session.open(args.session)
+    problems = session.verify() if args.verify else None
+    print(summarise(session, problems=problems))
+    return 1 if problems else 0
+
+
+def _import(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from labkit.session.importer import import_session
+
+    mapping = {}
+    for item in args.map:
+        text, sep, slot = item.partition("=")
+        if not sep or not text or not slot:
+            raise ConfigError(f"--map {item!r}: expected TEXT=SLOT, e.g. 450nm=450")
+        mapping[text] = slot
+    rig = load_rig(args.rig or default_rig_path())
+    with tqdm(unit="frame", desc="import") as bar:
+        session, unmatched = import_session(
+            args.session, args.source, args.pattern, rig, mapping=mapping, progress=bar.update
+        )
+    print(f"imported {len(session.records)} frames into {args.session}")
+    if unmatched:
+        names = ", ".join(p.name for p in unmatched[:5])
+        print(
+            f"skipped {len(unmatched)} file(s) matching no pattern: {names}"
+            + (" …" if len(unmatched) > 5 else "")
+        )
+    return 0

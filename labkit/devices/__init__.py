@@ -1,0 +1,1 @@
+"""Device interfaces and drivers: cameras (aravis, genicam, sim) and filter sliders."""

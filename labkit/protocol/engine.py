@@ -1,0 +1,300 @@
+"""The engine that runs a capture plan into a session, and resumes it.
+
+It keeps the plan's *desired* state (scene, slot, light cover) and applies it to the
+hardware only before a step that still has frames to capture, so a resumed session
+goes straight to its first missing frame. Every action is logged to ``log.jsonl``.
+Frames are stored by a :class:`~labkit.session.FrameWriter` on background threads.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+from labkit.devices.camera import Camera
+from labkit.devices.slider import FilterSlider
+from labkit.errors import DeviceError, LabkitError
+from labkit.frame import Frame
+from labkit.protocol.bracketing import choose_exposures, estimate_rates, exposure_ladder, meter
+from labkit.protocol.plan import (
+    Capture,
+    CoverLight,
+    FrameKey,
+    Meter,
+    MoveFilter,
+    Plan,
+    SetScene,
+    UncoverLight,
+    build_plan,
+    validate_plan,
+)
+from labkit.protocol.stage import Stage
+from labkit.rig import Rig
+from labkit.session.store import FrameWriter, Session, now_iso
+
+
+class Progress(Protocol):
+    """Receives progress: the planned total, frames done, the current step."""
+
+    def set_total(self, total: int, done: int) -> None: ...
+
+    def advance(self, frames: int) -> None: ...
+
+    def set_step(self, text: str) -> None: ...
+
+
+class _Silent:
+    def set_total(self, total: int, done: int) -> None:
+        pass
+
+    def advance(self, frames: int) -> None:
+        pass
+
+    def set_step(self, text: str) -> None:
+        pass
+
+
+class CaptureStopped(LabkitError):
+    """The capture was asked to stop (Ctrl-C); the session is resumable."""
+
+
+@dataclass
+class CaptureReport:
+    """What a run did."""
+
+    status: str
+    planned: int
+    stored_before: int
+    stored_now: int
+    recaptured: dict[str, str] = field(default_factory=dict)
+    elapsed_s: float = 0.0
+    bytes_written: int = 0
+    brackets: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def frames_per_s(self) -> float:
+        """Frames stored per second of this run."""
+        return self.stored_now / self.elapsed_s if self.elapsed_s > 0 else 0.0
+
+
+class Engine:
+    """Runs `rig`'s plan with the given devices into `session`.
+
+    Parameters
+    ----------
+    rig : Rig
+    camera : Camera
+    slider : FilterSlider
+    stage : Stage
+        Scene changes and light cover.
+    session : Session
+    progress : Progress, optional
+    stop : threading.Event, optional
+        Set it (e.g. from a SIGINT handler) to stop after the current frame.
+    writer_workers : int
+        Threads storing frames.
+    """
+
+    def __init__(
+        self,
+        rig: Rig,
+        camera: Camera,
+        slider: FilterSlider,
+        stage: Stage,
+        session: Session,
+        *,
+        progress: Progress | None = None,
+        stop: threading.Event | None = None,
+        writer_workers: int = 2,
+    ) -> None:
+        self.rig = rig
+        self.camera = camera
+        self.slider = slider
+        self.stage = stage
+        self.session = session
+        self.progress = progress or _Silent()
+        self.stop = stop or threading.Event()
+        self.writer_workers = writer_workers
+        self._state: dict[str, Any] = {}  # what the hardware is known to be doing
+
+    def plan(self) -> Plan:
+        """The plan with the exposures chosen so far."""
+        return build_plan(self.rig, self.session.brackets)
+
+    def run(self) -> CaptureReport:
+        """Capture every missing frame; returns a report. Raises CaptureStopped on stop."""
+        session = self.session
+        started = time.perf_counter()
+        plan = self.plan()
+        validate_plan(plan, self.camera, self.slider)
+        self._configure_camera()
+        session.remove_leftovers()
+        problems = session.verify()
+        if problems:
+            session.forget(problems)
+            session.log("recapture", frames=problems)
+        stored_before = len(session.records)
+        self._bytes_before = session.stored_bytes()
+        session.info["camera"] = self.camera.identity.as_dict()
+        session.info["slider"] = {"port": self.slider.port, "identity": self.slider.identity}
+        session.info.setdefault("runs", []).append(
+            {"started": now_iso(), "resumed_with": stored_before}
+        )
+        session.set_status("running")
+        self._continue_frame_ids()
+        report = CaptureReport("running", plan.frame_count, stored_before, 0, recaptured=problems)
+        try:
+            with FrameWriter(session, workers=self.writer_workers) as writer:
+                self._run_plan(writer, report)
+        except CaptureStopped as stop:
+            self._finish(report, "stopped", str(stop), started)
+            raise
+        except LabkitError as error:
+            self._finish(report, "failed", str(error), started)
+            raise
+        except BaseException as error:
+            self._finish(report, "failed", f"{type(error).__name__}: {error}", started)
+            raise
+        self._finish(report, "complete", None, started)
+        return report
+
+    # -- the loop -----------------------------------------------------------------------------
+    def _run_plan(self, writer: FrameWriter, report: CaptureReport) -> None:
+        while True:
+            plan = self.plan()
+            report.planned = plan.frame_count
+            self.progress.set_total(plan.frame_count, sum(self.session.has(k) for k in plan.keys()))
+            desired: dict[str, Any] = {}
+            for step in plan:
+                if isinstance(step, SetScene):
+                    desired["scene"] = step.scene
+                elif isinstance(step, MoveFilter):
+                    desired["slot"] = step.slot
+                elif isinstance(step, CoverLight | UncoverLight):
+                    desired["covered"] = isinstance(step, CoverLight)
+                elif isinstance(step, Meter):
+                    self._apply(desired)
+                    self._meter(step, report)
+                    break  # exposures known now: rebuild the plan
+                elif isinstance(step, Capture):
+                    missing = [k for k in step.keys() if not self.session.has(k)]
+                    if missing:
+                        self._apply(desired)
+                        self._capture(step, missing, writer)
+            else:
+                return
+
+    def _apply(self, desired: dict[str, Any]) -> None:
+        state = self._state
+        covered = desired.get("covered", False)
+        if state.get("covered") != covered:
+            self._act(
+                self.stage.cover_light if covered else self.stage.uncover_light,
+                "cover" if covered else "uncover",
+            )
+            state["covered"] = covered
+        if "scene" in desired and state.get("scene") != desired["scene"]:
+            self._act(lambda: self.stage.set_scene(desired["scene"]), "scene", desired["scene"])
+            state["scene"] = desired["scene"]
+        if "slot" in desired and state.get("slot") != desired["slot"]:
+            self._act(lambda: self.slider.move(desired["slot"]), "move", desired["slot"])
+            state["slot"] = desired["slot"]
+
+    def _act(self, action: Any, event: str, value: Any = None) -> None:
+        self._check_stop()
+        self.progress.set_step(f"{event} {value}" if value is not None else event)
+        action()
+        self.session.log(event, value=value)
+
+    def _capture(self, step: Capture, missing: list[FrameKey], writer: FrameWriter) -> None:
+        self.progress.set_step(step.describe())
+        self.session.log("capture", step=step.describe(), missing=len(missing))
+        for key in missing:
+            self._check_stop()
+            frame = self.camera.grab(step.exposure_s, 1)[0]
+            self._check_frame(frame, key)
+            writer.submit(key, frame)
+            self.progress.advance(1)
+
+    def _check_frame(self, frame: Frame, key: FrameKey) -> None:
+        where = f"camera {self.camera.identity.serial}, frame {frame.frame_id} for {key.id}"
+        if frame.status != "SUCCESS":
+            raise DeviceError(f"{where}: buffer status {frame.status}; the session can be resumed")
+        if frame.image.shape != self.camera.shape:
+            raise DeviceError(f"{where}: image shape {frame.image.shape} ≠ {self.camera.shape}")
+        if abs(frame.exposure_s - key.exposure_s) > 1e-9 * max(1.0, key.exposure_s):
+            raise DeviceError(
+                f"{where}: exposure {frame.exposure_s} s ≠ planned {key.exposure_s} s"
+            )
+
+    def _meter(self, step: Meter, report: CaptureReport) -> None:
+        auto = self.rig.plan.auto
+        self.progress.set_step(f"meter {step.scene}/{step.illumination}")
+        bounds = self.camera.exposure_bounds()
+        frames = meter(
+            self.camera,
+            bounds=bounds,
+            maximum_s=auto.max_exposure_s,
+            low=auto.low_fraction,
+            high=auto.high_fraction,
+        )
+        rate = estimate_rates(frames, high=auto.high_fraction)
+        ladder = exposure_ladder(
+            bounds, maximum_s=auto.max_exposure_s, steps_per_octave=auto.steps_per_octave
+        )
+        choice = choose_exposures(
+            rate, ladder, low=auto.low_fraction, high=auto.high_fraction, margin=auto.margin
+        )
+        choice.metering_s = [float(f.exposure_s) for f in frames]
+        fixed = self.rig.replicates_for(step.illumination)
+        self.session.save_bracket(step.scene, step.illumination, choice.as_dict())
+        self.session.log(
+            "meter",
+            scene=step.scene,
+            illumination=step.illumination,
+            choice=choice.summary(),
+            replicates=fixed,
+        )
+        report.brackets[f"{step.scene}/{step.illumination}"] = choice.summary()
+
+    # -- set-up and finish ---------------------------------------------------------------------
+    def _configure_camera(self) -> None:
+        config = self.rig.camera
+        if self.camera.pixel_format != config.pixel_format:
+            self.camera.set_pixel_format(config.pixel_format)
+        gain = self.camera.gain_bounds()
+        if not gain.contains(config.gain_db):
+            raise DeviceError(
+                f"camera {self.camera.identity.serial}: gain {config.gain_db:g} dB is outside "
+                f"[{gain.minimum:g}, {gain.maximum:g}] dB; change camera.gain_db in the rig file"
+            )
+        if gain.maximum > gain.minimum:
+            self.camera.set("Gain", config.gain_db)
+
+    def _continue_frame_ids(self) -> None:
+        """A simulated camera draws noise by frame id: never reuse one within a session."""
+        if hasattr(self.camera, "next_frame_id") and self.session.records:
+            last = max(int(r.get("frame_id") or 0) for r in self.session.records.values())
+            self.camera.next_frame_id = max(self.camera.next_frame_id, last + 1)
+
+    def _check_stop(self) -> None:
+        if self.stop.is_set():
+            raise CaptureStopped(
+                f"capture stopped on request after {len(self.session.records)} stored frames; "
+                f"run the same command again to resume session {self.session.folder}"
+            )
+
+    def _finish(self, report: CaptureReport, status: str, reason: str | None, t0: float) -> None:
+        report.status = status
+        report.elapsed_s = time.perf_counter() - t0
+        report.stored_now = len(self.session.records) - report.stored_before
+        report.bytes_written = self.session.stored_bytes() - self._bytes_before
+        session = self.session
+        session.info["stream_statistics"] = dict(self.camera.stream_statistics())
+        session.info["runs"][-1].update(
+            {"stopped": now_iso(), "status": status, "stored": report.stored_now}
+        )
+        session.log("finish", status=status, reason=reason, stored=report.stored_now)
+        session.set_status(status, reason)

@@ -1,0 +1,389 @@
+"""A capture session on disk: ``session.yaml``, append-only ``frames.jsonl``, TIFF frames.
+
+Crash safety: every frame is encoded in memory, hashed (sha256), written to a temporary
+file, fsynced and renamed into place (and its folder fsynced) before its one-line JSON
+record is appended to ``frames.jsonl`` and fsynced. A crash therefore leaves either a
+complete frame with its record, or a frame file without a record (re-captured on
+resume, overwriting it), or a torn last line (dropped on resume) — never a record
+pointing at a partial file. ``session.yaml`` is rewritten atomically.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import hashlib
+import json
+import os
+import threading
+from collections.abc import Callable, Iterable
+from concurrent.futures import Future, ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+import labkit
+from labkit.errors import ConfigError, DataError
+from labkit.frame import Frame, FrameKey
+from labkit.io.atomic import atomic_path, fsync_directory, write_text_atomic
+from labkit.io.tiff import encode_raw_tiff
+from labkit.rig import Rig, rig_from_dict
+
+SESSION_FORMAT = 1
+SESSION_FILE = "session.yaml"
+MANIFEST_FILE = "frames.jsonl"
+LOG_FILE = "log.jsonl"
+
+
+def now_iso() -> str:
+    """Current UTC time, ISO 8601."""
+    return dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds")
+
+
+def rig_snapshot(rig: Rig) -> dict[str, Any]:
+    """The rig as plain data (what a session stores and compares on resume)."""
+    return rig.model_dump(mode="json", exclude={"source"})
+
+
+def plan_fingerprint(snapshot: dict[str, Any]) -> str:
+    """sha256 of a rig snapshot, canonical JSON (first 16 hex digits)."""
+    text = json.dumps(snapshot, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def first_difference(old: Any, new: Any, path: str = "") -> str | None:
+    """Key path and values of the first difference between two nested mappings."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        for key in sorted(set(old) | set(new), key=str):
+            where = f"{path}.{key}" if path else str(key)
+            if key not in old or key not in new:
+                return f"{where}: {'absent' if key not in old else old[key]!r} → " + (
+                    "absent" if key not in new else repr(new[key])
+                )
+            found = first_difference(old[key], new[key], where)
+            if found:
+                return found
+        return None
+    return None if old == new else f"{path}: {old!r} → {new!r}"
+
+
+def sha256_file(path: Path) -> str:
+    """sha256 of a file's bytes (hex)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        while chunk := handle.read(1 << 22):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+class Session:
+    """A session folder. Use :meth:`create`, :meth:`open` or :meth:`open_for` to get one."""
+
+    def __init__(self, folder: Path, info: dict[str, Any], records: dict[str, dict]) -> None:
+        self.folder = folder
+        self.info = info
+        self.records = records
+        self._lock = threading.Lock()
+
+    # -- opening ---------------------------------------------------------------------------
+    @classmethod
+    def create(cls, folder: str | Path, rig: Rig, **facts: Any) -> Session:
+        """Start a new session in an empty (or absent) folder."""
+        folder = Path(folder)
+        if folder.exists() and any(folder.iterdir()):
+            raise ConfigError(
+                f"session folder {folder} is not empty and holds no labkit session; "
+                "choose a new --session folder"
+            )
+        folder.mkdir(parents=True, exist_ok=True)
+        snapshot = rig_snapshot(rig)
+        info = {
+            "format": SESSION_FORMAT,
+            "kind": "labkit-session",
+            "labkit_version": labkit.__version__,
+            "created": now_iso(),
+            "updated": now_iso(),
+            "status": "running",
+            "stop_reason": None,
+            "rig_source": rig.source,
+            "plan_fingerprint": plan_fingerprint(snapshot),
+            "rig": snapshot,
+            "brackets": {},
+            "runs": [],
+            **facts,
+        }
+        session = cls(folder, info, {})
+        (folder / MANIFEST_FILE).touch()
+        session.save()
+        fsync_directory(folder)
+        return session
+
+    @classmethod
+    def open(cls, folder: str | Path) -> Session:
+        """Open an existing session (a torn last manifest line is dropped)."""
+        folder = Path(folder)
+        path = folder / SESSION_FILE
+        if not path.is_file():
+            raise DataError(
+                f"{folder} is not a labkit session (no {SESSION_FILE}); "
+                "pass the folder given to `labkit capture --session`"
+            )
+        try:
+            info = yaml.safe_load(path.read_text())
+        except yaml.YAMLError as error:
+            raise DataError(f"{path} is not valid YAML ({error}); the session is damaged") from None
+        if not isinstance(info, dict) or info.get("kind") != "labkit-session":
+            raise DataError(f"{path} is not a labkit session file")
+        if info.get("format") != SESSION_FORMAT:
+            raise DataError(
+                f"{path}: session format {info.get('format')!r} is not supported "
+                f"(this labkit reads format {SESSION_FORMAT})"
+            )
+        return cls(folder, info, _read_manifest(folder / MANIFEST_FILE))
+
+    @classmethod
+    def open_for(cls, folder: str | Path, rig: Rig, **facts: Any) -> tuple[Session, bool]:
+        """Open the session of `rig`'s plan in `folder`, or create it; returns (session, resumed).
+
+        Raises ConfigError, touching nothing, when the folder holds a session of a
+        different rig or plan.
+        """
+        folder = Path(folder)
+        if not (folder / SESSION_FILE).exists():
+            return cls.create(folder, rig, **facts), False
+        session = cls.open(folder)
+        snapshot = rig_snapshot(rig)
+        if session.info.get("plan_fingerprint") != plan_fingerprint(snapshot):
+            change = first_difference(session.info.get("rig", {}), snapshot) or "the rig differs"
+            raise ConfigError(
+                f"session {folder} was captured with another rig or plan ({change}); "
+                "resume with the original rig file or start a new --session folder"
+            )
+        return session, True
+
+    # -- state -----------------------------------------------------------------------------
+    @property
+    def rig(self) -> Rig:
+        """The rig snapshot the session was captured with."""
+        return rig_from_dict(self.info["rig"], source=str(self.folder / SESSION_FILE))
+
+    @property
+    def status(self) -> str:
+        """``running`` (or crashed), ``stopped``, ``failed``, ``complete`` or ``imported``."""
+        return self.info["status"]
+
+    @property
+    def brackets(self) -> dict[tuple[str, str], list[float]]:
+        """Auto-bracketed exposure times chosen so far, by (scene, illumination)."""
+        return {
+            (scene, illumination): list(choice["exposures_s"])
+            for scene, by_light in self.info.get("brackets", {}).items()
+            for illumination, choice in by_light.items()
+        }
+
+    def has(self, key: FrameKey) -> bool:
+        """Whether a frame is stored."""
+        return key.id in self.records
+
+    def save(self) -> None:
+        """Rewrite ``session.yaml`` atomically."""
+        self.info["updated"] = now_iso()
+        text = yaml.safe_dump(self.info, sort_keys=False, allow_unicode=True)
+        write_text_atomic(self.folder / SESSION_FILE, text)
+
+    def set_status(self, status: str, reason: str | None = None) -> None:
+        """Record a status change (and why) in ``session.yaml``."""
+        self.info["status"] = status
+        self.info["stop_reason"] = reason
+        self.save()
+
+    def save_bracket(self, scene: str, illumination: str, choice: dict[str, Any]) -> None:
+        """Store an auto-bracketing decision (so a resumed session reuses it)."""
+        self.info.setdefault("brackets", {}).setdefault(scene, {})[illumination] = choice
+        self.save()
+
+    def log(self, event: str, **fields: Any) -> None:
+        """Append one executed step or event to ``log.jsonl``."""
+        line = json.dumps({"time": now_iso(), "event": event, **fields}, default=str)
+        with self._lock, open(self.folder / LOG_FILE, "a") as handle:
+            handle.write(line + "\n")
+
+    # -- frames ----------------------------------------------------------------------------
+    def store(self, key: FrameKey, frame: Frame, **facts: Any) -> dict[str, Any]:
+        """Write a frame durably, then append its record; returns the record."""
+        record = frame_record(key, frame, **facts)
+        data = encode_raw_tiff(frame.image, record)
+        record["sha256"] = hashlib.sha256(data).hexdigest()
+        record["bytes"] = len(data)
+        path = self.folder / key.path
+        with atomic_path(path) as temp:
+            temp.write_bytes(data)
+        self._append(record)
+        return record
+
+    def _append(self, record: dict[str, Any]) -> None:
+        line = json.dumps(record, separators=(",", ":"), default=_jsonable) + "\n"
+        with self._lock:
+            fd = os.open(self.folder / MANIFEST_FILE, os.O_WRONLY | os.O_APPEND | os.O_CREAT)
+            try:
+                os.write(fd, line.encode())
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+            self.records[record["key"]] = record
+
+    def verify(self, *, progress: Callable[[int], None] | None = None) -> dict[str, str]:
+        """Check every recorded frame's file and checksum; returns {key: problem}."""
+        problems: dict[str, str] = {}
+        for record in list(self.records.values()):
+            path = self.folder / record["file"]
+            if not path.is_file():
+                problems[record["key"]] = "file missing"
+            elif path.stat().st_size != record.get("bytes", path.stat().st_size):
+                problems[record["key"]] = "wrong size"
+            elif sha256_file(path) != record["sha256"]:
+                problems[record["key"]] = "checksum mismatch"
+            if progress:
+                progress(1)
+        return problems
+
+    def forget(self, keys: Iterable[str]) -> None:
+        """Drop records (e.g. of corrupt frames) by rewriting the manifest atomically."""
+        keys = set(keys)
+        with self._lock:
+            for key in keys:
+                self.records.pop(key, None)
+            text = "".join(
+                json.dumps(r, separators=(",", ":"), default=_jsonable) + "\n"
+                for r in self.records.values()
+            )
+            write_text_atomic(self.folder / MANIFEST_FILE, text)
+
+    def remove_leftovers(self) -> list[Path]:
+        """Delete temporary files of interrupted writes; returns what was removed."""
+        removed = (
+            [p for p in (self.folder / "frames").rglob(".*.part")]
+            if (self.folder / "frames").exists()
+            else []
+        )
+        for path in removed:
+            path.unlink(missing_ok=True)
+        return removed
+
+    def stored_bytes(self) -> int:
+        """Total bytes of the recorded frames."""
+        return sum(int(r.get("bytes", 0)) for r in self.records.values())
+
+
+class FrameWriter:
+    """Stores frames on a small thread pool so capture never waits on the disk.
+
+    At most `max_pending` frames are in flight (bounded memory); :meth:`submit` blocks
+    beyond that. Errors of a write are raised by the next :meth:`submit` or :meth:`close`.
+    """
+
+    def __init__(self, session: Session, *, workers: int = 2, max_pending: int = 4) -> None:
+        self.session = session
+        self._pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="labkit-writer")
+        self._slots = threading.BoundedSemaphore(max_pending)
+        self._futures: list[Future] = []
+
+    def submit(self, key: FrameKey, frame: Frame, **facts: Any) -> None:
+        """Queue a frame for durable storage."""
+        self._raise_failures()
+        self._slots.acquire()
+        future = self._pool.submit(self.session.store, key, frame, **facts)
+        future.add_done_callback(lambda _: self._slots.release())
+        self._futures.append(future)
+
+    def _raise_failures(self) -> None:
+        done = [f for f in self._futures if f.done()]
+        self._futures = [f for f in self._futures if not f.done()]
+        for future in done:
+            future.result()
+
+    def close(self) -> None:
+        """Wait for every queued frame to be durable; re-raise the first failure."""
+        try:
+            for future in self._futures:
+                future.result()
+        finally:
+            self._futures = []
+            self._pool.shutdown(wait=True)
+
+    def __enter__(self) -> FrameWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def frame_record(key: FrameKey, frame: Frame, **facts: Any) -> dict[str, Any]:
+    """The manifest record of a frame (without checksum and size)."""
+    return {
+        "key": key.id,
+        "scene": key.scene,
+        "illumination": key.illumination,
+        "exposure_s": key.exposure_s,
+        "replicate": key.replicate,
+        "dark": key.is_dark,
+        "exposure_readback_s": frame.exposure_readback_s,
+        "gain_db": frame.gain_db,
+        "pixel_format": frame.pixel_format,
+        "shape": list(frame.image.shape),
+        "frame_id": frame.frame_id,
+        "device_timestamp_ns": frame.device_timestamp_ns,
+        "host_timestamp_s": frame.host_timestamp_s,
+        "status": frame.status,
+        "temperature_c": frame.extra.get("temperature_c"),
+        "black_level": frame.extra.get("black_level"),
+        "saturation_dn": frame.extra.get("saturation_dn"),
+        "file": key.path,
+        "stored": now_iso(),
+        **facts,
+    }
+
+
+def key_of(record: dict[str, Any]) -> FrameKey:
+    """The FrameKey of a manifest record."""
+    return FrameKey(
+        record["scene"],
+        record["illumination"],
+        float(record["exposure_s"]),
+        int(record["replicate"]),
+    )
+
+
+def _read_manifest(path: Path) -> dict[str, dict]:
+    if not path.exists():
+        return {}
+    data = path.read_bytes()
+    lines = data.split(b"\n")
+    if lines and lines[-1]:  # no trailing newline: the last append was torn by a crash
+        torn = len(data) - len(lines[-1])
+        with open(path, "r+b") as handle:
+            handle.truncate(torn)
+            os.fsync(handle.fileno())
+        lines = lines[:-1]
+    records: dict[str, dict] = {}
+    for number, line in enumerate(lines, start=1):
+        if not line.strip():
+            continue
+        try:
+            record = json.loads(line)
+            records[record["key"]] = record
+        except (json.JSONDecodeError, KeyError, TypeError):
+            raise DataError(
+                f"{path} line {number} is not a frame record; the manifest is damaged "
+                "(restore it from a backup, or delete that line to re-capture the frame)"
+            ) from None
+    return records
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    return str(value)
