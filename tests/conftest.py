@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _helpers import QUICK_PLAN
 
 from labkit.rig import load_rig
 from labkit.sim import SimulatedRig
@@ -77,18 +78,6 @@ def write_rig(folder: Path, base: Path, **changes: object) -> Path:
     path = folder / "rig.yaml"
     path.write_text(yaml.safe_dump(data))
     return path
-
-
-#: A small, quick capture plan: 2 scenes × (unfiltered 2×3 + 2 filters 2×2×2) + darks = 38 frames.
-QUICK_PLAN = {
-    "sim.sensor.width": 96,
-    "sim.sensor.height": 64,
-    "sim.scenes.disks": {"type": "disks", "radius_px": 4, "pitch_px": 16},
-    "plan.illuminations": ["unfiltered", "450", "600"],
-    "plan.exposures_s": {"unfiltered": [0.003, 0.012], "filtered": [0.1, 0.5]},
-    "plan.replicates": {"unfiltered": 3, "filtered": 2},
-}
-QUICK_PLAN_FRAMES = 2 * (2 * 3 + 2 * 2 * 2) + (2 * 3 + 2 * 2)
 
 
 @pytest.fixture

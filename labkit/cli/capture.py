@@ -65,25 +65,35 @@ class _Bar:
     """tqdm progress: frames done / total, current step, ETA."""
 
     def __init__(self, enabled: bool) -> None:
-        from tqdm import tqdm
-
-        self.bar = tqdm(
-            total=0, unit="frame", desc="capture", disable=not enabled, dynamic_ncols=True
-        )
+        self.enabled = enabled
+        self.bar = None  # created when the plan is known, so early errors print no bar
 
     def set_total(self, total: int, done: int) -> None:
+        if self.bar is None:
+            from tqdm import tqdm
+
+            self.bar = tqdm(
+                total=total,
+                unit="frame",
+                desc="capture",
+                disable=not self.enabled,
+                dynamic_ncols=True,
+            )
         self.bar.total = total
         self.bar.n = done
         self.bar.refresh()
 
     def advance(self, frames: int) -> None:
-        self.bar.update(frames)
+        if self.bar is not None:
+            self.bar.update(frames)
 
     def set_step(self, text: str) -> None:
-        self.bar.set_postfix_str(text, refresh=False)
+        if self.bar is not None:
+            self.bar.set_postfix_str(text, refresh=False)
 
     def close(self) -> None:
-        self.bar.close()
+        if self.bar is not None:
+            self.bar.close()
 
 
 def _capture(args: argparse.Namespace) -> int:
@@ -137,7 +147,7 @@ def _capture(args: argparse.Namespace) -> int:
             report = engine.run()
     except CaptureStopped as stopped:
         bar.close()
-        print(f"labkit: {stopped}", file=sys.stderr)
+        print(f"\nlabkit: {stopped}", file=sys.stderr)
         return 130
     finally:
         bar.close()

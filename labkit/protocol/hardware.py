@@ -76,10 +76,12 @@ def open_slider(rig: Rig, *, port: str | None = None) -> FilterSlider:
     if config.driver == "elliptec":
         from labkit.devices.elliptec import Elliptec
 
-        return Elliptec(port, address=config.address)
+        return Elliptec(
+            port, address=config.address, timeout_s=config.timeout_s, retries=config.retries
+        )
     from labkit.devices.fw102c import FW102C
 
-    return FW102C(port)
+    return FW102C(port, timeout_s=config.timeout_s, retries=config.retries)
 
 
 def open_hardware(

@@ -1,0 +1,43 @@
+"""Helpers shared by tests (importable because pytest puts tests/ on sys.path)."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+
+from labkit.sim import SimulatedRig
+
+#: A small, quick capture plan: 2 scenes × (unfiltered 2×3 + 2 filters 2×2×2) + darks = 38 frames.
+QUICK_PLAN = {
+    "sim.sensor.width": 96,
+    "sim.sensor.height": 64,
+    "sim.scenes.disks": {"type": "disks", "radius_px": 4, "pitch_px": 16},
+    "plan.illuminations": ["unfiltered", "450", "600"],
+    "plan.exposures_s": {"unfiltered": [0.003, 0.012], "filtered": [0.1, 0.5]},
+    "plan.replicates": {"unfiltered": 3, "filtered": 2},
+}
+QUICK_PLAN_FRAMES = 2 * (2 * 3 + 2 * 2 * 2) + (2 * 3 + 2 * 2)
+
+
+def quick_plan() -> dict:
+    """A fresh copy of QUICK_PLAN (safe to modify)."""
+    return copy.deepcopy(QUICK_PLAN)
+
+
+def expected_counts(
+    world: SimulatedRig, scene: str | None, illumination: str, exposure_s: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Noise-free counts of a frame and a mask of pixels untouched by saturation.
+
+    The mask excludes pixels within 2 px of a saturated one (blooming reaches them).
+    """
+    from scipy import ndimage
+
+    model = world.sensor.model
+    irradiance = None if scene is None else world.irradiance(scene, illumination)
+    electrons = world.sensor.mean_electrons(irradiance, exposure_s)
+    saturated = electrons >= 0.9 * model.full_well_e
+    clean = ~ndimage.binary_dilation(saturated, iterations=2)
+    counts = np.minimum(electrons, model.full_well_e) * model.gain_factor(0.0)
+    return np.minimum(counts + model.black_level_dn, model.adc_max), clean
