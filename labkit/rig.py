@@ -94,8 +94,9 @@ class SliderConfig(_Strict):
     driver: Literal["fw102c", "elliptec", "sim"]
     port: str = Field(..., description="serial port, e.g. /dev/ttyUSB0, or 'sim'")
     address: Annotated[int, Field(ge=0, le=15)] = 0
-    timeout_s: Annotated[float, Field(gt=0, le=60)] = 2.0
-    retries: Annotated[int, Field(ge=1, le=20)] = 3
+    timeout_s: Annotated[float, Field(gt=0, le=60)] = Field(2.0, description="reply timeout, s")
+    move_timeout_s: Annotated[float, Field(gt=0, le=300)] = Field(5.0, description="per move, s")
+    retries: Annotated[int, Field(ge=1, le=20)] = Field(3, description="attempts per command")
     positions: dict[Annotated[int, Field(ge=0, le=12)], SliderPosition]
 
     @model_validator(mode="after")

@@ -1,9 +1,18 @@
 """The benchmark harness behind ``labkit bench``: each stage writes JSON and Markdown."""
 
+from labkit.bench.capture import bench_capture
 from labkit.bench.harness import Measurement, machine_info, measure, write_report
 from labkit.bench.sim import bench_sim
 
 #: Stage name → benchmark function (rig path, repeats) → (cases, notes).
-BENCHMARKS = {"sim": bench_sim}
+BENCHMARKS = {"sim": bench_sim, "capture": bench_capture}
 
-__all__ = ["BENCHMARKS", "Measurement", "bench_sim", "machine_info", "measure", "write_report"]
+__all__ = [
+    "BENCHMARKS",
+    "Measurement",
+    "bench_capture",
+    "bench_sim",
+    "machine_info",
+    "measure",
+    "write_report",
+]

@@ -69,6 +69,11 @@ def open_slider(rig: Rig, *, port: str | None = None) -> FilterSlider:
     """
     config = rig.slider
     port = port or config.port
+    timing = {
+        "timeout_s": config.timeout_s,
+        "move_timeout_s": config.move_timeout_s,
+        "retries": config.retries,
+    }
     if port == "sim":
         raise ConfigError(
             "slider.port 'sim' names the simulated slider; it is opened by open_hardware"
@@ -76,12 +81,10 @@ def open_slider(rig: Rig, *, port: str | None = None) -> FilterSlider:
     if config.driver == "elliptec":
         from labkit.devices.elliptec import Elliptec
 
-        return Elliptec(
-            port, address=config.address, timeout_s=config.timeout_s, retries=config.retries
-        )
+        return Elliptec(port, address=config.address, **timing)
     from labkit.devices.fw102c import FW102C
 
-    return FW102C(port, timeout_s=config.timeout_s, retries=config.retries)
+    return FW102C(port, **timing)
 
 
 def open_hardware(

@@ -1,10 +1,13 @@
-"""The simulated rig: scenes, lens, sensor, camera and the filter-slider simulator.
+"""The simulated rig: scenes, lens, sensor, camera and the filter-slider simulators.
 
 Everything renders at finer spatial (exact pixel-area coverage) and spectral (≤ 2 nm)
 resolution than any reconstruction model uses, so tests commit no inverse crime.
 """
 
+from labkit.sim._pty import PtySerialSimulator
 from labkit.sim.camera import SimCamera
+from labkit.sim.elliptec import ElliptecSimulator
+from labkit.sim.fw102c import FW102CSimulator
 from labkit.sim.lens import SELLMEIER, Lens, refractive_index
 from labkit.sim.render import render_irradiance
 from labkit.sim.scenes import (
@@ -19,7 +22,6 @@ from labkit.sim.scenes import (
     textured_scene,
 )
 from labkit.sim.sensor import Sensor, SensorModel
-from labkit.sim.slider import FW102CSimulator, PtySerialSimulator
 from labkit.sim.world import DARK, SimulatedRig
 
 __all__ = [
@@ -28,6 +30,7 @@ __all__ = [
     "SELLMEIER",
     "CellGrid",
     "DiskGrid",
+    "ElliptecSimulator",
     "FW102CSimulator",
     "Lens",
     "PtySerialSimulator",

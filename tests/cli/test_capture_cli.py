@@ -63,12 +63,18 @@ def test_capture_then_show(quick_rig_file: Path, tmp_path: Path, capsys) -> None
 
 
 def test_sigkill_at_random_points_then_resume_gives_exactly_the_plan(
-    quick_rig_file: Path, tmp_path: Path
+    make_rig, tmp_path: Path
 ) -> None:
     """Kill the capture process ≥ 10 times mid-capture; the resumed session is exact."""
+    from _helpers import quick_plan
+
+    changes = quick_plan()
+    changes["plan.replicates"] = {"unfiltered": 6, "filtered": 4}
+    rig_file = make_rig(**changes)
     folder = tmp_path / "s"
-    planned = sorted(k.id for k in build_plan(load_rig(quick_rig_file)).keys())
-    command = [sys.executable, "-m", "labkit", "capture", str(quick_rig_file),
+    planned = sorted(k.id for k in build_plan(load_rig(rig_file)).keys())
+    assert len(planned) == 76
+    command = [sys.executable, "-m", "labkit", "capture", str(rig_file),
                "--session", str(folder), "--fast", "--no-progress"]  # fmt: skip
     rng = random.Random(2019)
     kills = attempts = 0

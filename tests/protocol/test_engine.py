@@ -96,7 +96,9 @@ def test_corrupt_frame_is_recaptured_on_resume(quick_rig_file: Path, tmp_path: P
 def test_slider_fault_is_reported_with_port_and_reply_and_session_resumes(
     make_rig, tmp_path: Path
 ) -> None:
-    path = make_rig(**_quick(), **{"slider.timeout_s": 0.2, "slider.retries": 2})
+    path = make_rig(
+        **_quick(), **{"slider.timeout_s": 0.2, "slider.move_timeout_s": 0.5, "slider.retries": 2}
+    )
     rig = load_rig(path)
     session, _ = Session.open_for(tmp_path / "s", rig)
     with open_hardware(rig, fast=True) as hw:

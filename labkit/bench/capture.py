@@ -1,0 +1,162 @@
+"""`labkit bench capture`: the capture loop's storage rate and the full simulated protocol.
+
+Targets (issue 3): the loop must never be the bottleneck of a GigE camera — ≥ 15 full
+2448×2048 16-bit frames/s (≥ 150 MB/s) stored with checksum and fsync, excluding the
+simulator's rendering time, or ≥ 80 % of the disk's own sequential write rate when the
+disk is slower than that. The storage case replays pre-rendered frames through the real
+engine (slider moves on the pty simulator, manifest, TIFF, sha256, fsync); the protocol
+case runs the thesis plan on the simulated rig in ``--fast`` mode, rendering included.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+from labkit.bench.harness import Measurement, measure
+from labkit.frame import Frame
+from labkit.protocol import Engine, build_plan
+from labkit.protocol.hardware import open_hardware
+from labkit.rig import Rig, load_rig
+from labkit.session import Session
+
+TARGET_FRAMES_PER_S = 15.0
+TARGET_DISK_FRACTION = 0.8
+STORAGE_FRAMES = 90
+
+
+def disk_write_rate(folder: Path, *, total_mb: int = 1024, chunk_mb: int = 10) -> float:
+    """Sequential write rate of the disk holding `folder`, MB/s (written, then fsynced)."""
+    chunk = os.urandom(chunk_mb * 1_000_000)
+    path = folder / "disk-rate.bin"
+    start = time.perf_counter()
+    with open(path, "wb") as handle:
+        for _ in range(total_mb // chunk_mb):
+            handle.write(chunk)
+        handle.flush()
+        os.fsync(handle.fileno())
+    elapsed = time.perf_counter() - start
+    path.unlink()
+    return (total_mb // chunk_mb) * chunk_mb / elapsed
+
+
+class ReplayCamera:
+    """Delegates to a camera but returns copies of frames it grabbed once (no rendering)."""
+
+    def __init__(self, camera: Any, frames: list[Frame]) -> None:
+        self._camera = camera
+        self._frames = frames
+        self._next_id = 1
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._camera, name)
+
+    def grab(self, exposure_s: float, n: int = 1) -> list[Frame]:
+        out = []
+        for _ in range(n):
+            frame = self._frames[self._next_id % len(self._frames)]
+            out.append(
+                replace(
+                    frame,
+                    frame_id=self._next_id,
+                    exposure_s=exposure_s,
+                    exposure_readback_s=exposure_s,
+                    host_timestamp_s=time.time(),
+                )
+            )
+            self._next_id += 1
+        return out
+
+
+def _storage_rig(rig: Rig, frames: int) -> Rig:
+    plan = rig.plan.model_copy(
+        update={
+            "scenes": rig.plan.scenes[:1],
+            "illuminations": rig.illuminations()[:1],
+            "exposures_s": rig.plan.exposures_s.model_copy(update={"unfiltered": [0.003]}),
+            "replicates": rig.plan.replicates.model_copy(update={"unfiltered": frames}),
+            "dark_frames": False,
+        }
+    )
+    return rig.model_copy(update={"plan": plan})
+
+
+def bench_capture(rig_path: str | Path, *, repeats: int = 1) -> tuple[list[Measurement], list[str]]:
+    """Disk rate, storage rate of full-size frames, and the full thesis protocol (--fast)."""
+    rig = load_rig(rig_path)
+    work = Path(tempfile.mkdtemp(prefix="labkit-bench-capture-", dir=os.environ.get("TMPDIR")))
+    cases: list[Measurement] = []
+    notes: list[str] = []
+    try:
+        disk_mb_s = disk_write_rate(work)
+        store_rig = _storage_rig(rig, STORAGE_FRAMES)
+        with open_hardware(store_rig, fast=True) as hw:
+            hw.stage.set_scene(store_rig.plan.scenes[0])
+            source = hw.camera.grab(0.003, 4)
+            frame_mb = source[0].image.nbytes / 1e6
+            needed = TARGET_FRAMES_PER_S * frame_mb
+            floor = min(needed, TARGET_DISK_FRACTION * disk_mb_s)
+            target_s = STORAGE_FRAMES * frame_mb / floor
+            camera = ReplayCamera(hw.camera, source)
+            counter = iter(range(1000))
+
+            def store() -> None:
+                folder = work / f"store{next(counter)}"
+                session = Session.create(folder, store_rig)
+                Engine(store_rig, camera, hw.slider, hw.stage, session).run()
+                shutil.rmtree(folder)
+
+            case = measure(
+                f"store {STORAGE_FRAMES} full frames (sha256 + fsync)",
+                store,
+                repeats=max(repeats, 3),
+                target_s=target_s,
+            )
+        rate = STORAGE_FRAMES / case.seconds
+        case.extra = {
+            "frames_per_s": rate,
+            "mb_per_s": rate * frame_mb,
+            "frame_mb": frame_mb,
+            "disk_write_mb_per_s": disk_mb_s,
+            "required_mb_per_s": floor,
+        }
+        cases.append(case)
+
+        plan = build_plan(rig)
+        report_box: dict[str, Any] = {}
+
+        def protocol() -> None:
+            folder = work / "thesis"
+            session = Session.create(folder, rig)
+            with open_hardware(rig, fast=True) as hw:
+                report_box["report"] = Engine(rig, hw.camera, hw.slider, hw.stage, session).run()
+                report_box["problems"] = session.verify()
+            shutil.rmtree(folder)
+
+        full = measure(
+            f"thesis protocol, {plan.frame_count} frames (--fast, rendering included)",
+            protocol,
+            repeats=1,
+        )
+        report = report_box["report"]
+        full.extra = {
+            "frames": report.stored_now,
+            "frames_per_s": report.frames_per_s,
+            "mb_written": report.bytes_written / 1e6,
+            "corrupt_after_verify": len(report_box["problems"]),
+        }
+        cases.append(full)
+        notes.append(
+            f"Disk sequential write rate (1 GB, fsync): {disk_mb_s:.0f} MB/s. Storage target: "
+            f"{floor:.0f} MB/s = min({TARGET_FRAMES_PER_S:g} frames/s × {frame_mb:.1f} MB, "
+            f"{TARGET_DISK_FRACTION:.0%} of the disk rate); measured "
+            f"{rate:.1f} frames/s = {rate * frame_mb:.0f} MB/s."
+        )
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    return cases, notes

@@ -1,0 +1,967 @@
+"""GenICam camera backend: any GenTL producer (``.cti``) driven through Harvesters.
+
+:func:`list_devices` discovers the cameras a producer offers; :class:`GenICamCamera`
+opens one and implements the :class:`~labkit.devices.camera.Camera` protocol on top of
+its GenICam node map (``ExposureTime`` in µs, ``Gain`` in dB, ``PixelFormat``,
+``TriggerMode``/``TriggerSource``/``TriggerSoftware``…).
+
+Acquisition
+-----------
+:meth:`GenICamCamera.grab` validates the requested exposure against the device's
+bounds *before* anything is captured, then
+
+* uses a software trigger when the device has ``TriggerMode``, ``TriggerSource`` (with
+  a ``Software`` entry) and ``TriggerSoftware``: the acquisition keeps running between
+  grabs, buffers left over from earlier grabs are drained and every returned frame
+  answers a trigger sent after the settings changed;
+* otherwise runs the device free-running: the acquisition is (re)started after the
+  settings changed (stopping flushes every buffer that was in flight) and stopped again
+  after the last frame.
+
+In both modes a fetched buffer is only kept when its frame id is newer than every id
+seen before the change (and than the previous kept frame), its device timestamp (when
+the producer reports one) is later than the previous kept frame's and it arrived after
+the change; anything else is counted as *discarded*. Timed-out or incomplete fetches are
+retried at most ``retries`` times per frame (re-sending the trigger), then a
+DeviceError is raised.
+
+Images are copied out of the GenTL buffer before it is queued back. Single-component
+formats (``Bayer*``, ``Mono*``) give a ``(rows, cols)`` uint8/uint16 mosaic;
+multi-component formats (e.g. ``RGBa8``) give ``(rows, cols, components)``; they are
+not raw mosaics and :attr:`GenICamCamera.cfa` refuses them.
+
+One GenTL producer can be loaded only once per process, so cameras on the same
+``.cti`` share one Harvester; :func:`list_devices` reuses it while a camera is open
+(reporting the devices found when it was opened).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import math
+import threading
+import time
+import weakref
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from labkit.cfa import layout_from_pixel_format
+from labkit.devices.camera import Bounds, CameraIdentity, DeviceInfo
+from labkit.errors import ConfigError, DataError, DeviceError
+from labkit.frame import Frame
+
+if TYPE_CHECKING:
+    from harvesters.core import Buffer, Harvester, ImageAcquirer
+
+__all__ = ["GenICamCamera", "list_devices"]
+
+BACKEND = "genicam"
+
+#: Exposure-time features, preferred first (GenICam SFNC, then the older GigE name); µs.
+EXPOSURE_FEATURES = ("ExposureTime", "ExposureTimeAbs")
+#: Gain features, preferred first: ``Gain`` is in dB, ``GainRaw`` in device units.
+GAIN_FEATURES = ("Gain", "GainRaw")
+#: The features a software trigger needs.
+TRIGGER_FEATURES = ("TriggerMode", "TriggerSource", "TriggerSoftware")
+
+#: Symbols every GenTL producer exports (checked before the library is handed to the
+#: GenTL binding, which crashes the process on a shared library that lacks them).
+_GENTL_SYMBOLS = ("GCInitLib", "TLOpen", "TLUpdateInterfaceList", "DSStartAcquisition")
+
+#: GenApi access modes (genicam.genapi.EAccessMode values).
+_NI, _NA, _WO, _RO, _RW = 0, 1, 2, 3, 4
+_ACCESS_NAMES = {_NI: "not implemented", _NA: "not available", _WO: "write-only",
+                 _RO: "read-only", _RW: "read-write"}  # fmt: skip
+
+#: Seconds a drain fetch waits for an already-delivered buffer.
+_DRAIN_TIMEOUT_S = 0.002
+#: Stale buffers tolerated per frame before a grab gives up.
+_MAX_DISCARDS_PER_FRAME = 64
+
+
+def _harvesters() -> Any:
+    """Import harvesters (and the genicam binding) or raise DeviceError saying how to get it."""
+    try:
+        from harvesters import core
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise DeviceError(
+            f"the genicam camera backend needs the 'harvesters' and 'genicam' packages ({exc}); "
+            "install them with `pip install harvesters genicam`"
+        ) from exc
+    return core
+
+
+def _genicam_errors() -> tuple[type[BaseException], ...]:
+    """The GenApi and GenTL exception base classes."""
+    from genicam.genapi import GenericException as GenApiError
+    from genicam.gentl import GenericException as GenTLError
+
+    return GenApiError, GenTLError
+
+
+def _first_line(exc: BaseException) -> str:
+    """The first line of an exception's message (GenICam messages carry file/line noise)."""
+    text = str(exc).strip().splitlines()
+    return text[0] if text else type(exc).__name__
+
+
+# -- producers (.cti) ----------------------------------------------------------------------
+
+
+def _check_cti(cti: str | Path) -> str:
+    """Resolve `cti` and check it is a loadable GenTL producer; return the resolved path."""
+    path = Path(cti).expanduser()
+    if not path.is_file():
+        what = "is a directory" if path.is_dir() else "does not exist"
+        raise DeviceError(
+            f"GenTL producer {str(cti)!r} {what}; give the path of the camera vendor's .cti "
+            "file (e.g. the rig's camera.cti)"
+        )
+    resolved = str(path.resolve())
+    try:
+        library = ctypes.CDLL(resolved)
+    except OSError as exc:
+        raise DeviceError(
+            f"GenTL producer {resolved!r} cannot be loaded ({exc}); check that it is a .cti "
+            "built for this platform and that its dependencies are installed"
+        ) from None
+    missing = [name for name in _GENTL_SYMBOLS if not hasattr(library, name)]
+    if missing:
+        raise DeviceError(
+            f"{resolved!r} is a shared library but not a GenTL producer (it lacks "
+            f"{', '.join(missing)}); give the camera vendor's .cti file"
+        )
+    return resolved
+
+
+@dataclass
+class _Producer:
+    """A loaded producer shared by the cameras opened on it in this process."""
+
+    cti: str
+    harvester: Harvester
+    users: int = 0
+    devices: list[DeviceInfo] = field(default_factory=list)
+
+
+_PRODUCERS: dict[str, _Producer] = {}
+_PRODUCERS_LOCK = threading.Lock()
+
+
+def _load_producer(cti: str) -> Harvester:
+    """A fresh Harvester with `cti` loaded and its device list updated."""
+    core = _harvesters()
+    harvester = core.Harvester()
+    try:
+        harvester.add_file(cti)
+        harvester.update()
+    except Exception as exc:
+        harvester.reset()
+        raise DeviceError(
+            f"GenTL producer {cti!r} failed to enumerate devices ({_first_line(exc)}); check "
+            "the camera's connection and the producer's installation"
+        ) from None
+    return harvester
+
+
+def _info_text(info: Any, name: str) -> str:
+    """A device-info property as text ('' when the producer does not report it)."""
+    try:
+        value = getattr(info, name)
+    except Exception:
+        return ""
+    return "" if value is None else str(value)
+
+
+def _describe(infos: list[Any]) -> list[DeviceInfo]:
+    return [
+        DeviceInfo(
+            backend=BACKEND,
+            device_id=_info_text(info, "id_"),
+            vendor=_info_text(info, "vendor"),
+            model=_info_text(info, "model"),
+            serial=_info_text(info, "serial_number"),
+            address=_info_text(info, "display_name"),
+        )
+        for info in infos
+    ]
+
+
+def _acquire_producer(cti: str) -> _Producer:
+    with _PRODUCERS_LOCK:
+        producer = _PRODUCERS.get(cti)
+        if producer is None:
+            harvester = _load_producer(cti)
+            producer = _Producer(cti, harvester, devices=_describe(harvester.device_info_list))
+            _PRODUCERS[cti] = producer
+        producer.users += 1
+        return producer
+
+
+def _release_producer(cti: str) -> None:
+    with _PRODUCERS_LOCK:
+        producer = _PRODUCERS.get(cti)
+        if producer is None:
+            return
+        producer.users -= 1
+        if producer.users <= 0:
+            del _PRODUCERS[cti]
+            producer.harvester.reset()
+
+
+def _format_devices(devices: list[DeviceInfo]) -> str:
+    if not devices:
+        return "none"
+    return "; ".join(
+        f"{d.device_id} ({d.vendor} {d.model}, serial {d.serial or '?'})" for d in devices
+    )
+
+
+def list_devices(cti: str | Path) -> list[DeviceInfo]:
+    """The cameras a GenTL producer offers.
+
+    Parameters
+    ----------
+    cti : str or Path
+        Path of the GenTL producer (``.cti``).
+
+    Returns
+    -------
+    list of DeviceInfo
+        One entry per device: ``device_id`` is the producer's device id, ``address`` its
+        display name. While a :class:`GenICamCamera` on the same producer is open in this
+        process, the list found when it was opened.
+
+    Raises
+    ------
+    DeviceError
+        When the file is missing, cannot be loaded or is not a GenTL producer, or the
+        producer fails to enumerate its devices.
+    """
+    path = _check_cti(cti)
+    with _PRODUCERS_LOCK:
+        shared = _PRODUCERS.get(path)
+        if shared is not None:
+            return list(shared.devices)
+        harvester = _load_producer(path)
+        try:
+            return _describe(harvester.device_info_list)
+        finally:
+            harvester.reset()
+
+
+# -- the camera ----------------------------------------------------------------------------
+
+
+def _close_device(acquirer: ImageAcquirer, cti: str) -> None:
+    """Stop and destroy `acquirer`, then release the shared producer (finaliser)."""
+    try:
+        acquirer.destroy()
+    finally:
+        _release_producer(cti)
+
+
+class GenICamCamera:
+    """A camera behind a GenTL producer, opened through Harvesters.
+
+    Parameters
+    ----------
+    cti : str or Path
+        Path of the GenTL producer (``.cti``).
+    device_id : str or None
+        Which device: matched against the producer's device id, then the serial number,
+        then the model name. None opens the first device.
+    pixel_format : str or None
+        Pixel format to select on opening (e.g. ``BayerRG12``); None keeps the device's.
+    timeout_s : float
+        How long one fetch waits for a buffer, s (the exposure time is added).
+    retries : int
+        How many failed or timed-out fetches are retried per frame.
+
+    Raises
+    ------
+    DeviceError
+        When the producer is unusable, `device_id` matches no device (the message lists
+        the devices found) or several, or the device cannot be opened.
+    ConfigError
+        When `timeout_s` or `retries` is invalid.
+    """
+
+    backend = BACKEND
+
+    def __init__(
+        self,
+        cti: str | Path,
+        device_id: str | None = None,
+        *,
+        pixel_format: str | None = None,
+        timeout_s: float = 2.0,
+        retries: int = 3,
+    ) -> None:
+        if not (math.isfinite(timeout_s) and timeout_s > 0):
+            raise ConfigError(
+                f"genicam camera: timeout_s must be a positive time in s, got {timeout_s!r}"
+            )
+        if int(retries) != retries or retries < 0:
+            raise ConfigError(
+                f"genicam camera: retries must be a whole number >= 0, got {retries!r}"
+            )
+        self.timeout_s = float(timeout_s)
+        self.retries = int(retries)
+        self.cti = _check_cti(cti)
+        self._closed = True
+        self._stats = dict.fromkeys(
+            ("acquisitions_started", "buffers_fetched", "frames_delivered", "buffers_failed",
+             "buffers_discarded", "retries", "triggers_sent"), 0,
+        )  # fmt: skip
+        self._host_frame_id = 0
+        self._acquisition_last_id: int | None = None
+        producer = _acquire_producer(self.cti)
+        try:
+            index = self._match(producer, device_id)
+            self.device_id = producer.devices[index].device_id
+            self._info = producer.devices[index]
+            self._version = _info_text(producer.harvester.device_info_list[index], "version")
+            try:
+                self._ia = producer.harvester.create(index)
+            except Exception as exc:
+                raise DeviceError(
+                    f"camera {self.device_id} ({self.cti}) cannot be opened ({_first_line(exc)}); "
+                    "close other programs (or GenICamCamera objects) using it"
+                ) from None
+        except BaseException:
+            _release_producer(self.cti)
+            raise
+        self._closed = False
+        self._finalizer = weakref.finalize(self, _close_device, self._ia, self.cti)
+        self._nodes = self._ia.remote_device.node_map
+        if pixel_format is not None:
+            try:
+                self.set_pixel_format(pixel_format)
+            except BaseException:
+                self.close()
+                raise
+
+    def _match(self, producer: _Producer, device_id: str | None) -> int:
+        devices = producer.devices
+        where = f"GenTL producer {producer.cti}"
+        if not devices:
+            raise DeviceError(
+                f"{where} found no camera; check that it is connected and powered, and that "
+                "no other process holds the producer"
+            )
+        if device_id is None:
+            return 0
+        for key in ("device_id", "serial", "model"):
+            hits = [i for i, d in enumerate(devices) if getattr(d, key) == device_id]
+            if len(hits) == 1:
+                return hits[0]
+            if len(hits) > 1:
+                raise DeviceError(
+                    f"{where}: {device_id!r} matches the {key} of {len(hits)} cameras "
+                    f"({_format_devices([devices[i] for i in hits])}); give a device id instead"
+                )
+        raise DeviceError(
+            f"{where} has no camera {device_id!r}; devices found: {_format_devices(devices)}; "
+            "set the rig's camera device to one of these ids or serial numbers"
+        )
+
+    # -- identity and features -----------------------------------------------------------
+    def __repr__(self) -> str:
+        state = "closed" if self._closed else "open"
+        return f"GenICamCamera({self.cti!r}, {self.device_id!r}) [{state}]"
+
+    @property
+    def _where(self) -> str:
+        return f"camera {self.device_id} ({self.cti})"
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise DeviceError(f"{self._where} is closed; open a new GenICamCamera")
+
+    def has_feature(self, name: str) -> bool:
+        """Whether the device implements feature `name` (and it is not unavailable)."""
+        self._check_open()
+        if not self._nodes.has_node(name):
+            return False
+        return self._nodes.get_node(name).node.get_access_mode() not in (_NI, _NA)
+
+    def _node(self, name: str) -> Any:
+        self._check_open()
+        if not self._nodes.has_node(name):
+            raise DeviceError(
+                f"{self._where} has no feature {name!r}; see feature_names() for the "
+                f"{len(self.feature_names())} it has"
+            )
+        return self._nodes.get_node(name)
+
+    def _interface(self, node: Any) -> str:
+        from genicam.genapi import EInterfaceType
+
+        kind = node.node.principal_interface_type
+        return EInterfaceType(kind).name.removeprefix("intfI").lower()
+
+    @property
+    def identity(self) -> CameraIdentity:
+        """Vendor, model, serial and firmware (node-map features, else the producer's info)."""
+
+        def first(names: tuple[str, ...], fallback: str) -> str:
+            for name in names:
+                if self.has_feature(name):
+                    try:
+                        return str(self.get(name))
+                    except DeviceError:
+                        continue
+            return fallback
+
+        info = self._info
+        return CameraIdentity(
+            vendor=first(("DeviceVendorName",), info.vendor),
+            model=first(("DeviceModelName",), info.model),
+            serial=first(("DeviceSerialNumber", "DeviceID"), info.serial),
+            firmware=first(("DeviceFirmwareVersion", "DeviceVersion"), self._version),
+        )
+
+    def feature_names(self) -> list[str]:
+        """Names of the device's implemented features (categories left out), node-map order."""
+        from genicam.genapi import EInterfaceType
+
+        self._check_open()
+        category = EInterfaceType.intfICategory
+        names = []
+        for item in self._nodes.nodes:
+            node = item.node
+            if (
+                node.is_feature()
+                and node.principal_interface_type != category
+                and node.get_access_mode() != _NI
+            ):
+                names.append(node.name)
+        return names
+
+    def get(self, name: str) -> Any:
+        """Read a feature (GenICam units: µs, dB, enumeration symbol…).
+
+        Raises
+        ------
+        DeviceError
+            When the feature is missing, not readable, a command or a raw register.
+        """
+        node = self._node(name)
+        kind = self._interface(node)
+        if kind in ("command", "register", "port", "category"):
+            raise DeviceError(f"{self._where}: feature {name} is a {kind} and has no value to read")
+        access = node.node.get_access_mode()
+        if access not in (_RO, _RW):
+            raise DeviceError(
+                f"{self._where}: feature {name} is {_ACCESS_NAMES.get(access, access)} and "
+                "cannot be read now (another setting may disable it)"
+            )
+        try:
+            return node.value
+        except _genicam_errors() as exc:
+            raise DeviceError(
+                f"{self._where}: reading {name} failed ({_first_line(exc)})"
+            ) from None
+
+    def set(self, name: str, value: Any) -> None:
+        """Write a feature (GenICam units).
+
+        Raises
+        ------
+        DeviceError
+            When the feature is missing, not writable (now), a command, or the value is
+            out of range or not one of its choices.
+        """
+        node = self._node(name)
+        kind = self._interface(node)
+        if kind == "command":
+            raise DeviceError(f"{self._where}: {name} is a command; use execute({name!r})")
+        access = node.node.get_access_mode()
+        if access not in (_WO, _RW):
+            raise DeviceError(
+                f"{self._where}: feature {name} is {_ACCESS_NAMES.get(access, access)} and "
+                "cannot be written"
+                + (" (stop the acquisition or change the controlling setting first)"
+                   if access == _RO else "")
+            )  # fmt: skip
+        if kind == "enumeration":
+            choices = self._symbols(node)
+            if str(value) not in choices:
+                raise DeviceError(
+                    f"{self._where}: {name}={value!r} is not one of {choices}; pick one of those"
+                )
+            value = str(value)
+        elif kind in ("integer", "float"):
+            number = float(value)
+            low, high = node.min, node.max
+            if not (math.isfinite(number) and low <= number <= high):
+                raise DeviceError(
+                    f"{self._where}: {name}={value!r} is outside [{low:g}, {high:g}] "
+                    f"{self._unit(node)}".rstrip()
+                )
+            value = round(number) if kind == "integer" else number
+        try:
+            node.value = value
+        except _genicam_errors() as exc:
+            raise DeviceError(
+                f"{self._where}: writing {name}={value!r} failed ({_first_line(exc)})"
+            ) from None
+
+    def execute(self, name: str) -> None:
+        """Run a command feature (e.g. ``TriggerSoftware``)."""
+        node = self._node(name)
+        if self._interface(node) != "command":
+            raise DeviceError(f"{self._where}: {name} is not a command; use set()/get()")
+        try:
+            node.execute()
+        except _genicam_errors() as exc:
+            raise DeviceError(f"{self._where}: {name} failed ({_first_line(exc)})") from None
+
+    @staticmethod
+    def _symbols(node: Any) -> list[str]:
+        return [str(entry) for entry in node.symbolics]
+
+    @staticmethod
+    def _unit(node: Any) -> str:
+        try:
+            return str(node.unit)
+        except Exception:
+            return ""
+
+    def _bounds(self, name: str, scale: float) -> Bounds:
+        node = self._node(name)
+        try:
+            increment = float(node.inc)
+        except Exception:
+            increment = 0.0
+        return Bounds(float(node.min) * scale, float(node.max) * scale, increment * scale)
+
+    # -- exposure and gain ---------------------------------------------------------------
+    def _exposure_feature(self) -> str:
+        for name in EXPOSURE_FEATURES:
+            if self.has_feature(name):
+                return name
+        raise DeviceError(
+            f"{self._where} has no ExposureTime or ExposureTimeAbs feature, so it cannot "
+            "capture an exposure-bracketed plan; use a fixed exposure (grab(None, n) or "
+            "grab_free_running(n), a plan without exposure times) or a camera with exposure "
+            "control"
+        )
+
+    def exposure_bounds(self) -> Bounds:
+        """Exposure time range and increment, s (from ``ExposureTime``/``ExposureTimeAbs``, µs).
+
+        Raises
+        ------
+        DeviceError
+            Naming the missing feature when the camera has no exposure control.
+        """
+        return self._bounds(self._exposure_feature(), 1e-6)
+
+    def gain_bounds(self) -> Bounds:
+        """Gain range and increment: dB from ``Gain``, device units from ``GainRaw``.
+
+        ``Bounds(0, 0)`` when the camera has neither.
+        """
+        for name in GAIN_FEATURES:
+            if self.has_feature(name):
+                return self._bounds(name, 1.0)
+        return Bounds(0.0, 0.0)
+
+    def _exposure_readback_s(self) -> float:
+        for name in EXPOSURE_FEATURES:
+            if self.has_feature(name):
+                return float(self.get(name)) * 1e-6
+        return math.nan
+
+    def _gain_db(self) -> float:
+        return float(self.get("Gain")) if self.has_feature("Gain") else math.nan
+
+    def _check_exposure(self, exposure_s: float) -> Bounds:
+        """Bounds of the exposure feature, s, after checking `exposure_s` lies within them."""
+        bounds = self.exposure_bounds()  # raises the missing-feature error first
+        if not (math.isfinite(exposure_s) and exposure_s > 0 and bounds.contains(exposure_s)):
+            raise DeviceError(
+                f"{self._where}: exposure {exposure_s!r} s is outside the camera's range "
+                f"[{bounds.minimum:g}, {bounds.maximum:g}] s; choose an exposure within it"
+            )
+        return bounds
+
+    def _set_exposure(self, exposure_s: float) -> None:
+        bounds = self._check_exposure(exposure_s)
+        name = self._exposure_feature()
+        if self.has_feature("ExposureAuto") and self.get("ExposureAuto") != "Off":
+            self.set("ExposureAuto", "Off")
+        low, high, step = bounds.minimum * 1e6, bounds.maximum * 1e6, bounds.increment * 1e6
+        micro = min(max(exposure_s * 1e6, low), high)
+        if step > 0:
+            micro = min(low + round((micro - low) / step) * step, high)
+        self.set(name, micro)
+
+    # -- image format --------------------------------------------------------------------
+    @property
+    def pixel_format(self) -> str:
+        """Current GenICam pixel format, e.g. ``BayerGB12`` (Viky: ``RGBa8`` or ``Mono8``)."""
+        return str(self.get("PixelFormat"))
+
+    def pixel_formats(self) -> list[str]:
+        """The pixel formats the device offers."""
+        return self._symbols(self._node("PixelFormat"))
+
+    def set_pixel_format(self, pixel_format: str) -> None:
+        """Choose the pixel format (stops a running acquisition first).
+
+        Raises
+        ------
+        DeviceError
+            When the device does not offer `pixel_format` (the message lists what it offers).
+        """
+        choices = self.pixel_formats()
+        if pixel_format not in choices:
+            raise DeviceError(
+                f"{self._where} has no pixel format {pixel_format!r}; it offers {choices}"
+            )
+        self._stop()
+        self.set("PixelFormat", pixel_format)
+
+    @property
+    def cfa(self) -> str:
+        """CFA layout of the current pixel format, e.g. ``GBRG``.
+
+        Raises
+        ------
+        DeviceError
+            When the current pixel format is not a Bayer format.
+        """
+        pixel_format = self.pixel_format
+        try:
+            return layout_from_pixel_format(pixel_format)
+        except DataError:
+            bayer = [name for name in self.pixel_formats() if name.startswith("Bayer")]
+            hint = (
+                f"select one of its Bayer formats {bayer} with set_pixel_format()"
+                if bayer
+                else "it offers no Bayer format, so it cannot capture raw colour mosaics"
+            )
+            raise DeviceError(
+                f"{self._where} delivers {pixel_format}, not a Bayer format, so it has no CFA "
+                f"layout; {hint}"
+            ) from None
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """Image (rows, cols) = (``Height``, ``Width``)."""
+        return int(self.get("Height")), int(self.get("Width"))
+
+    # -- acquisition ---------------------------------------------------------------------
+    def _can_trigger(self) -> bool:
+        if not all(self.has_feature(name) for name in TRIGGER_FEATURES):
+            return False
+        if self.has_feature("TriggerSelector"):
+            selectors = self._symbols(self._node("TriggerSelector"))
+            if "FrameStart" in selectors and self.get("TriggerSelector") != "FrameStart":
+                self.set("TriggerSelector", "FrameStart")
+        return "Software" in self._symbols(self._node("TriggerSource"))
+
+    def _set_trigger(self, on: bool) -> None:
+        """Put the device in software-trigger (`on`) or free-running mode."""
+        if on:
+            if self.get("TriggerSource") != "Software" or self.get("TriggerMode") != "On":
+                self._stop()
+                self.set("TriggerSource", "Software")
+                self.set("TriggerMode", "On")
+        elif self.has_feature("TriggerMode") and self.get("TriggerMode") != "Off":
+            self._stop()
+            self.set("TriggerMode", "Off")
+
+    def _start(self) -> None:
+        if self._ia.is_acquiring():
+            return
+        if self.has_feature("AcquisitionMode"):
+            modes = self._symbols(self._node("AcquisitionMode"))
+            if "Continuous" in modes and self.get("AcquisitionMode") != "Continuous":
+                self.set("AcquisitionMode", "Continuous")
+        try:
+            self._ia.start()
+        except Exception as exc:
+            raise DeviceError(
+                f"{self._where}: starting the acquisition failed ({_first_line(exc)}); check "
+                "the connection and that no other program streams from the camera"
+            ) from None
+        self._stats["acquisitions_started"] += 1
+        self._acquisition_last_id = None  # producers may restart their frame counter
+
+    def _stop(self) -> None:
+        if not self._closed and self._ia.is_acquiring():
+            self._ia.stop()
+
+    def _drain(self) -> int | None:
+        """Fetch and discard buffers already delivered; return the largest frame id seen."""
+        newest: int | None = None
+        for _ in range(_MAX_DISCARDS_PER_FRAME):
+            buffer = self._ia.try_fetch(timeout=_DRAIN_TIMEOUT_S)
+            if buffer is None:
+                break
+            try:
+                frame_id = self._frame_id(buffer)
+            finally:
+                buffer.queue()
+            self._stats["buffers_fetched"] += 1
+            self._stats["buffers_discarded"] += 1
+            newest = frame_id if newest is None else max(newest, frame_id)
+        return newest
+
+    def grab(self, exposure_s: float | None, n: int = 1) -> list[Frame]:
+        """Capture `n` frames exposed for `exposure_s` seconds.
+
+        Parameters
+        ----------
+        exposure_s : float or None
+            Exposure time, s; None captures at the exposure as configured (the only
+            choice on a camera without ``ExposureTime``/``ExposureTimeAbs``).
+        n : int
+            Number of frames (>= 1).
+
+        Returns
+        -------
+        list of Frame
+            Frames exposed after this call changed the settings, frame ids strictly
+            increasing, status ``"SUCCESS"``. ``exposure_s``/``exposure_readback_s``
+            are NaN when the camera has no exposure feature, ``gain_db`` NaN when it has
+            no ``Gain`` feature; ``device_timestamp_ns`` is 0 when the producer reports
+            no timestamps.
+
+        Raises
+        ------
+        DeviceError
+            Before anything is captured when the exposure is out of range or the camera
+            has no exposure feature (the message names ``ExposureTime``); after
+            ``retries`` failed fetches of one frame.
+        ConfigError
+            When `n` is not a positive whole number.
+        """
+        self._check_open()
+        if int(n) != n or n < 1:
+            raise ConfigError(f"{self._where}: grab needs n >= 1 frames, got {n!r}")
+        if exposure_s is not None:
+            self._check_exposure(exposure_s)  # missing feature or out of range: no capture
+        return self._capture(exposure_s, int(n), trigger=self._can_trigger())
+
+    def grab_free_running(self, n: int = 1, exposure_s: float | None = None) -> list[Frame]:
+        """Capture `n` frames without a trigger, at the configured (or given) exposure.
+
+        Works on cameras without exposure control or trigger features (e.g. Viky).
+        See :meth:`grab` for the returned frames.
+        """
+        self._check_open()
+        if int(n) != n or n < 1:
+            raise ConfigError(f"{self._where}: grab needs n >= 1 frames, got {n!r}")
+        if exposure_s is not None:
+            self._check_exposure(exposure_s)
+        return self._capture(exposure_s, int(n), trigger=False)
+
+    def _capture(self, exposure_s: float | None, n: int, *, trigger: bool) -> list[Frame]:
+        self._set_trigger(trigger)
+        if not trigger:
+            self._stop()  # flushes every buffer in flight
+        if exposure_s is not None:
+            try:
+                self._set_exposure(exposure_s)
+            except DeviceError:
+                if not self._ia.is_acquiring():
+                    raise
+                self._stop()  # some devices lock the exposure while acquiring
+                self._set_exposure(exposure_s)
+        readback_s = self._exposure_readback_s()
+        requested_s = readback_s if exposure_s is None else float(exposure_s)
+        gain_db = self._gain_db()
+        pixel_format = self.pixel_format
+        changed_at = time.time()
+        self._start()  # a (re)start forgets the frame ids of the previous acquisition
+        floor = self._acquisition_last_id
+        if trigger:  # buffers delivered since the last grab are stale
+            drained = self._drain()
+            if drained is not None:
+                floor = drained if floor is None else max(floor, drained)
+        fetch_timeout = self.timeout_s + (0.0 if math.isnan(readback_s) else readback_s)
+        try:
+            return self._collect(
+                n, trigger=trigger, floor=floor, changed_at=changed_at,
+                fetch_timeout=fetch_timeout, requested_s=requested_s, readback_s=readback_s,
+                gain_db=gain_db, pixel_format=pixel_format,
+            )  # fmt: skip
+        except BaseException:
+            self._stop()
+            raise
+        finally:
+            if not trigger:
+                self._stop()
+
+    def _collect(
+        self, n: int, *, trigger: bool, floor: int | None, changed_at: float,
+        fetch_timeout: float, requested_s: float, readback_s: float, gain_db: float,
+        pixel_format: str,
+    ) -> list[Frame]:  # fmt: skip
+        frames: list[Frame] = []
+        last_id = floor
+        last_stamp = 0
+        failures = discards = 0
+        need_trigger = trigger
+        while len(frames) < n:
+            if need_trigger:
+                self.execute("TriggerSoftware")
+                self._stats["triggers_sent"] += 1
+                need_trigger = False
+            buffer = self._ia.try_fetch(timeout=fetch_timeout)
+            if buffer is None:
+                self._stats["buffers_failed"] += 1
+                failures += 1
+                if failures > self.retries:
+                    raise DeviceError(
+                        f"{self._where}: no complete frame {len(frames) + 1} of {n} after "
+                        f"{failures} attempts of {fetch_timeout:g} s each "
+                        f"(statistics {self.stream_statistics()}); check the cable and "
+                        "bandwidth, or raise timeout_s / retries"
+                    )
+                self._stats["retries"] += 1
+                need_trigger = trigger
+                continue
+            try:
+                arrived = time.time()
+                frame_id = self._frame_id(buffer)
+                stamp = self._device_timestamp_ns(buffer)
+                stale = (
+                    (last_id is not None and frame_id <= last_id)
+                    or (stamp > 0 and last_stamp > 0 and stamp <= last_stamp)
+                    or arrived < changed_at
+                )
+                image = None if stale else self._image(buffer, pixel_format)
+            finally:
+                buffer.queue()
+            self._stats["buffers_fetched"] += 1
+            if stale:
+                self._stats["buffers_discarded"] += 1
+                discards += 1
+                if discards > _MAX_DISCARDS_PER_FRAME * n:
+                    raise DeviceError(
+                        f"{self._where}: {discards} stale buffers (frame ids or timestamps "
+                        "not newer than the settings change); the producer's frame counter "
+                        "or clock looks broken; restart the camera"
+                    )
+                continue
+            assert image is not None
+            frames.append(
+                Frame(
+                    image=image,
+                    frame_id=frame_id,
+                    exposure_s=requested_s,
+                    exposure_readback_s=readback_s,
+                    gain_db=gain_db,
+                    pixel_format=pixel_format,
+                    device_timestamp_ns=stamp,
+                    host_timestamp_s=arrived,
+                    extra={
+                        "backend": BACKEND,
+                        "cti": self.cti,
+                        "device_id": self.device_id,
+                        "trigger": "software" if trigger else "free-running",
+                    },
+                )
+            )
+            self._stats["frames_delivered"] += 1
+            last_id, last_stamp = frame_id, stamp or last_stamp
+            self._acquisition_last_id = frame_id
+            need_trigger = trigger
+        return frames
+
+    def _frame_id(self, buffer: Buffer) -> int:
+        try:
+            return int(buffer.module.frame_id)
+        except Exception:  # the producer keeps no frame counter: count on the host
+            self._host_frame_id += 1
+            return self._host_frame_id
+
+    @staticmethod
+    def _device_timestamp_ns(buffer: Buffer) -> int:
+        """Device timestamp, ns; 0 when the producer reports none."""
+        module = buffer.module
+        try:
+            return int(module.timestamp_ns)
+        except Exception:
+            pass
+        try:
+            ticks = int(module.timestamp)
+            frequency = int(module.parent.parent.timestamp_frequency)
+        except Exception:
+            return 0
+        return ticks * 1_000_000_000 // frequency if frequency > 0 else 0
+
+    def _image(self, buffer: Buffer, pixel_format: str) -> np.ndarray:
+        """Copy the buffer's first 2-D image component into a uint8/uint16 array."""
+        payload = buffer.payload
+        components = [] if payload is None else payload.components
+        component = next((c for c in components if hasattr(c, "width")), None)
+        if component is None or component.data is None:
+            raise DeviceError(
+                f"{self._where}: buffer holds no image component (payload {payload!r}); "
+                "select an image pixel format"
+            )
+        rows, cols = int(component.height), int(component.width)
+        channels = component.num_components_per_pixel
+        data = component.data
+        if data.dtype not in (np.uint8, np.uint16) or channels != int(channels):
+            raise DeviceError(
+                f"{self._where}: pixel format {component.data_format} ({data.dtype}, {channels} "
+                "components per pixel) is not an integer image; select a Bayer or Mono format"
+            )
+        channels = int(channels)
+        if data.size != rows * cols * channels:
+            raise DeviceError(
+                f"{self._where}: buffer has {data.size} values for a {rows}×{cols}×{channels} "
+                f"{pixel_format} image (line padding?); check Width/PixelFormat"
+            )
+        shape = (rows, cols) if channels == 1 else (rows, cols, channels)
+        return np.array(data.reshape(shape), copy=True)
+
+    def stream_statistics(self) -> dict[str, int]:
+        """Counters since opening, plus the producer's stream counters while acquiring.
+
+        Returns
+        -------
+        dict of str to int
+            ``acquisitions_started``, ``buffers_fetched`` (complete buffers received),
+            ``frames_delivered`` (returned by grab), ``buffers_failed`` (timeouts and
+            incomplete buffers), ``buffers_discarded`` (stale), ``retries``,
+            ``triggers_sent``, and ``stream_<name>`` for the GenTL data-stream counters
+            the producer reports (``stream_num_delivered``, ``stream_num_underrun``…).
+        """
+        stats = dict(self._stats)
+        if self._closed:
+            return stats
+        for stream in self._ia.data_streams:
+            for name in ("num_delivered", "num_underrun", "num_announced", "num_queued",
+                         "num_started"):  # fmt: skip
+                try:
+                    stats[f"stream_{name}"] = int(getattr(stream.module, name))
+                except Exception:
+                    continue
+            break
+        return stats
+
+    # -- lifetime ------------------------------------------------------------------------
+    def close(self) -> None:
+        """Stop any acquisition and release the device (and the producer, if last). Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        self._finalizer()
+
+    def __enter__(self) -> GenICamCamera:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
