@@ -128,6 +128,21 @@ class SimulatedRig:
             level_step_px=self.rig.sim.level_step_px,
         )
 
+    def exposure_fraction(
+        self, scene: str | None, illumination: str, exposure_s: float, *, gain_db: float = 0.0
+    ) -> np.ndarray:
+        """Ground truth: noise-free dark-subtracted signal as a fraction of the saturation range.
+
+        Returns (rows, cols); 1.0 is a full pixel (full well or ADC limit). Shutter
+        jitter, flicker and blooming are left out.
+        """
+        model = self.sensor.model
+        irradiance = None if scene is None else self.irradiance(scene, illumination)
+        electrons = self.sensor.mean_electrons(irradiance, exposure_s)
+        gain = model.gain_factor(gain_db)
+        full = min(model.full_well_e * gain, model.adc_max - model.black_level_dn)
+        return electrons * np.float32(gain / full)
+
     def clear_cache(self) -> None:
         """Forget cached irradiance (frees memory)."""
         with self._lock:
