@@ -71,7 +71,7 @@ def _devices(args: argparse.Namespace) -> int:
     for port in ports:
         line = f"  {port}"
         if args.probe:
-            found = probe(str(port))
+            found = probe(port.device)
             line += f"  → {found[0]}: {found[1]}" if found else "  → no slider answered"
         print(line)
     if not ports:

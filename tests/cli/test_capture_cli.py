@@ -184,3 +184,42 @@ def test_import_with_unknown_illumination_names_the_fix(tmp_path: Path, sim_rig_
                      "a_{illumination}_{exposure}_{replicate}.tif")  # fmt: skip
     assert result.returncode == 2 and "--map red=NAME" in result.stderr
     assert not (tmp_path / "s").exists()
+
+
+def test_ctrl_c_stops_after_the_current_frame_and_leaves_a_resumable_session(
+    quick_rig_file: Path, tmp_path: Path
+) -> None:
+    folder = tmp_path / "s"
+    command = [sys.executable, "-m", "labkit", "capture", str(quick_rig_file),
+               "--session", str(folder), "--no-progress"]  # fmt: skip
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    manifest = folder / MANIFEST_FILE
+    while time.monotonic() < deadline and process.poll() is None:
+        if manifest.exists() and manifest.read_bytes().count(b"\n") >= 3:
+            break
+        time.sleep(0.01)
+    process.send_signal(signal.SIGINT)
+    _, stderr = process.communicate(timeout=60)
+    assert process.returncode == 130, stderr
+    assert "Traceback" not in stderr and "run the same command again to resume" in stderr
+    session = Session.open(folder)
+    assert session.status == "stopped" and 3 <= len(session.records) < QUICK_PLAN_FRAMES
+    _assert_consistent(folder)
+    assert main([*command[3:], "--fast"]) == 0
+    assert sorted(Session.open(folder).records) == sorted(
+        k.id for k in build_plan(load_rig(quick_rig_file)).keys()
+    )
+
+
+def test_devices_lists_backends_and_probes_a_simulated_slider(capsys, monkeypatch) -> None:
+    from labkit.devices import serial_ports
+    from labkit.sim import FW102CSimulator
+
+    with FW102CSimulator(time_scale=0) as simulator:
+        port = serial_ports.SerialPortInfo(simulator.port, "pty", "sim")
+        monkeypatch.setattr(serial_ports, "list_serial_ports", lambda: [port])
+        assert main(["devices", "--probe"]) == 0
+    out = capsys.readouterr().out
+    assert "aravis (GigE Vision):" in out and "genicam (GenTL):" in out
+    assert f"{simulator.port}" in out and "fw102c: THORLABS FW102C" in out
