@@ -264,14 +264,21 @@ class Engine:
         config = self.rig.camera
         if self.camera.pixel_format != config.pixel_format:
             self.camera.set_pixel_format(config.pixel_format)
+        serial = self.camera.identity.serial
+        if "Gain" not in self.camera.feature_names():
+            if config.gain_db:
+                raise DeviceError(
+                    f"camera {serial} has no Gain feature in dB, so camera.gain_db "
+                    f"{config.gain_db:g} cannot be applied; set camera.gain_db to 0"
+                )
+            return
         gain = self.camera.gain_bounds()
         if not gain.contains(config.gain_db):
             raise DeviceError(
-                f"camera {self.camera.identity.serial}: gain {config.gain_db:g} dB is outside "
+                f"camera {serial}: gain {config.gain_db:g} dB is outside "
                 f"[{gain.minimum:g}, {gain.maximum:g}] dB; change camera.gain_db in the rig file"
             )
-        if gain.maximum > gain.minimum:
-            self.camera.set("Gain", config.gain_db)
+        self.camera.set("Gain", config.gain_db)
 
     def _continue_frame_ids(self) -> None:
         """A simulated camera draws noise by frame id: never reuse one within a session."""
