@@ -100,7 +100,7 @@ def _capture(args: argparse.Namespace) -> int:
     from labkit.protocol import Engine, build_plan, validate_plan
     from labkit.protocol.engine import CaptureStopped
     from labkit.protocol.hardware import open_hardware
-    from labkit.session import Session
+    from labkit.session import SESSION_FILE, Session
 
     rig_path = args.rig or default_rig_path()
     rig = load_rig(rig_path)
@@ -109,7 +109,11 @@ def _capture(args: argparse.Namespace) -> int:
         rig = rig.model_copy(update={"sim": rig.sim.model_copy(update={"sensor": sensor})})
     if args.dry_run:
         return _dry_run(rig, args, build_plan, validate_plan, open_hardware)
-    session, resumed = Session.open_for(args.session, rig)
+    resumed = (args.session / SESSION_FILE).exists()
+    if resumed:  # refuse another plan's session before touching any device
+        session, _ = Session.open_for(args.session, rig)
+    else:
+        Session.check_creatable(args.session)
     if resumed and session.status in ("complete", "imported"):
         print(
             f"session {args.session} is already {session.status} "
@@ -135,6 +139,8 @@ def _capture(args: argparse.Namespace) -> int:
     bar = _Bar(enabled=not args.no_progress)
     try:
         with open_hardware(rig, fast=args.fast, assume_done=args.yes) as hardware:
+            if not resumed:  # created only once the devices opened
+                session = Session.create(args.session, rig)
             engine = Engine(
                 rig,
                 hardware.camera,

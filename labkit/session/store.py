@@ -91,11 +91,7 @@ class Session:
     def create(cls, folder: str | Path, rig: Rig, **facts: Any) -> Session:
         """Start a new session in an empty (or absent) folder."""
         folder = Path(folder)
-        if folder.exists() and any(folder.iterdir()):
-            raise ConfigError(
-                f"session folder {folder} is not empty and holds no labkit session; "
-                "choose a new --session folder"
-            )
+        cls.check_creatable(folder)
         folder.mkdir(parents=True, exist_ok=True)
         snapshot = rig_snapshot(rig)
         info = {
@@ -118,6 +114,16 @@ class Session:
         session.save()
         fsync_directory(folder)
         return session
+
+    @staticmethod
+    def check_creatable(folder: str | Path) -> None:
+        """Raise ConfigError unless a new session can be created in `folder`."""
+        folder = Path(folder)
+        if folder.exists() and (not folder.is_dir() or any(folder.iterdir())):
+            raise ConfigError(
+                f"session folder {folder} is not empty and holds no labkit session; "
+                "choose a new --session folder"
+            )
 
     @classmethod
     def open(cls, folder: str | Path) -> Session:

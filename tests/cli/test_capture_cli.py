@@ -135,6 +135,7 @@ def test_missing_serial_port_is_a_one_line_error(make_rig, tmp_path: Path) -> No
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert result.stderr.strip().count("\n") == 0
     assert "/dev/ttyLABKIT9" in result.stderr and "does not exist" in result.stderr
+    assert not (tmp_path / "s").exists()
 
 
 def test_import_flycapture_style_names(tmp_path: Path, sim_rig_path: Path, capsys) -> None:
@@ -223,3 +224,17 @@ def test_devices_lists_backends_and_probes_a_simulated_slider(capsys, monkeypatc
     out = capsys.readouterr().out
     assert "aravis (GigE Vision):" in out and "genicam (GenTL):" in out
     assert f"{simulator.port}" in out and "fw102c: THORLABS FW102C" in out
+
+
+def test_unknown_camera_id_is_a_one_line_error_and_creates_nothing(tmp_path: Path) -> None:
+    rig = tmp_path / "gige.yaml"
+    rig.write_text(
+        "format: 1\ncamera: {backend: aravis, device: No-Such-Camera, pixel_format: BayerRG8}\n"
+        "slider: {driver: fw102c, port: sim, positions: {1: {name: unfiltered}}}\n"
+        "plan: {scenes: [target]}\n"
+    )
+    result = _labkit("capture", str(rig), "--session", str(tmp_path / "s"), "--yes")
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert result.stderr.strip().count("\n") == 0, result.stderr
+    assert "no camera with id 'No-Such-Camera'; cameras found:" in result.stderr
+    assert not (tmp_path / "s").exists()
