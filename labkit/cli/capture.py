@@ -139,7 +139,8 @@ def _capture(args: argparse.Namespace) -> int:
     bar = _Bar(enabled=not args.no_progress)
     try:
         with open_hardware(rig, fast=args.fast, assume_done=args.yes) as hardware:
-            if not resumed:  # created only once the devices opened
+            if not resumed:  # created only once the devices opened and accept the plan
+                validate_plan(build_plan(rig), hardware.camera, hardware.slider)
                 session = Session.create(args.session, rig)
             engine = Engine(
                 rig,

@@ -45,7 +45,11 @@ class Hardware:
 
 
 def open_camera(rig: Rig, *, fast: bool = True, shape: tuple[int, int] | None = None) -> Camera:
-    """Open the rig's camera backend."""
+    """Open the rig's camera backend.
+
+    The pixel format is left as the device has it: the engine checks the plan against
+    the camera (exposure control first) before it configures the format.
+    """
     config = rig.camera
     if config.backend == "sim":
         from labkit.sim.world import SimulatedRig
@@ -54,12 +58,10 @@ def open_camera(rig: Rig, *, fast: bool = True, shape: tuple[int, int] | None = 
     if config.backend == "aravis":
         from labkit.devices.aravis import AravisCamera
 
-        return AravisCamera(config.device, pixel_format=config.pixel_format)
+        return AravisCamera(config.device)
     from labkit.devices.genicam import GenICamCamera
 
-    return GenICamCamera(
-        rig.resolve_path(config.cti or ""), config.device, pixel_format=config.pixel_format
-    )
+    return GenICamCamera(rig.resolve_path(config.cti or ""), config.device)
 
 
 def open_slider(rig: Rig, *, port: str | None = None) -> FilterSlider:

@@ -238,3 +238,20 @@ def test_unknown_camera_id_is_a_one_line_error_and_creates_nothing(tmp_path: Pat
     assert result.stderr.strip().count("\n") == 0, result.stderr
     assert "no camera with id 'No-Such-Camera'; cameras found:" in result.stderr
     assert not (tmp_path / "s").exists()
+
+
+def test_genicam_camera_without_exposure_control_fails_before_capturing(tmp_path: Path) -> None:
+    genicam = pytest.importorskip("genicam")
+    cti = Path(genicam.__file__).parent / "viky.cti"
+    if not cti.is_file():
+        pytest.skip("the genicam wheel ships no viky.cti")
+    rig = tmp_path / "viky.yaml"
+    rig.write_text(
+        f"format: 1\ncamera: {{backend: genicam, cti: {cti}, pixel_format: BayerRG8}}\n"
+        "slider: {driver: fw102c, port: sim, positions: {1: {name: unfiltered}}}\n"
+        "plan: {scenes: [target]}\n"
+    )
+    result = _labkit("capture", str(rig), "--session", str(tmp_path / "s"), "--yes")
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert "has no ExposureTime or ExposureTimeAbs feature" in result.stderr
+    assert not (tmp_path / "s").exists()
