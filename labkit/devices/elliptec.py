@@ -20,7 +20,6 @@ with the status code in words.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import re
 from collections.abc import Sequence
@@ -29,6 +28,7 @@ from typing import ClassVar
 
 import serial
 
+from labkit.devices._serial_slider import SerialSlider, attempts_text, show_reply
 from labkit.devices.serial_ports import open_port
 from labkit.errors import ConfigError, DeviceError
 
@@ -78,7 +78,6 @@ _TRANSIENT_STATUSES = frozenset({1, 2, 9})
 _TERMINATOR = b"\r\n"
 _HEX_CHARS = "0123456789ABCDEF"
 _REPLY = re.compile(r"([0-9A-F])([A-Z]{2})([0-9A-Za-z]*)")
-_MAX_DRAIN_READS = 50
 
 
 def status_text(code: int) -> str:
@@ -257,16 +256,6 @@ def _parse_packet(raw: bytes, address: str) -> tuple[str, str]:
     return mnemonic, data
 
 
-def _show(reply: bytes, timeout_s: float) -> str:
-    if not reply:
-        return f"none within {timeout_s:g} s"
-    return repr(reply.decode("latin-1"))
-
-
-def _attempts(count: int) -> str:
-    return "1 attempt" if count == 1 else f"{count} attempts"
-
-
 def _status_hint(code: int) -> str:
     if code in (1, 2, 9):
         return "check that the slider is not blocked and that nothing else drives it"
@@ -308,7 +297,7 @@ def identify_elliptec(ser: serial.Serial, *, addresses: str = "0") -> str | None
     return None
 
 
-class Elliptec:
+class Elliptec(SerialSlider):
     """A Thorlabs Elliptec ELL6 (2 slots) or ELL9 (4 slots) slider (a :class:`FilterSlider`).
 
     Opening the port reads the device information (``in``); the device type gives the
@@ -364,7 +353,6 @@ class Elliptec:
         self.timeout_s = float(timeout_s)
         self.move_timeout_s = float(move_timeout_s)
         self.retries = retries
-        self._quiet_s = min(0.05, self.timeout_s / 4)
         self._serial: serial.Serial | None = open_port(
             port,
             baudrate=self.baudrate,
@@ -437,7 +425,7 @@ class Elliptec:
         problem = hint = ""
         for attempt in range(1, self.retries + 1):
             packet, raw = self._attempt("ma", data, self.move_timeout_s)
-            shown = _show(raw, self.move_timeout_s)
+            shown = show_reply(raw, self.move_timeout_s)
             mnemonic, payload = packet if packet is not None else ("", "")
             status = int(payload, 16) if mnemonic == "GS" else 0
             if mnemonic == "GS" and status not in _TRANSIENT_STATUSES and status != 0:
@@ -451,7 +439,7 @@ class Elliptec:
                 reached = nearest_slot(pulses, self.slot_positions)
             if reached == target or (mnemonic == "GS" and status == 0):
                 pulses, raw = self._read_pulses()  # verify
-                shown = _show(raw, self.timeout_s)
+                shown = show_reply(raw, self.timeout_s)
                 reached = nearest_slot(pulses, self.slot_positions)
                 if reached == target:
                     return
@@ -464,22 +452,9 @@ class Elliptec:
                 self._resync()
             else:
                 problem, hint = "no valid reply", self._link_hint
-            problem += f" after {_attempts(attempt)} (last reply {shown})"
+            problem += f" after {attempts_text(attempt)} (last reply {shown})"
             logger.warning("%s: `%s` — %s", self._where, command, problem)
         raise DeviceError(f"{self._where}: `{command}` — {problem}; {hint}")
-
-    def close(self) -> None:
-        """Release the serial port (idempotent)."""
-        ser, self._serial = self._serial, None
-        if ser is not None:
-            with contextlib.suppress(serial.SerialException, OSError):  # already gone: fine
-                ser.close()
-
-    def __enter__(self) -> Elliptec:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
     def __repr__(self) -> str:
         state = "open" if self._serial is not None else "closed"
@@ -488,30 +463,15 @@ class Elliptec:
     # -- the exchange -------------------------------------------------------------------------
 
     @property
-    def _where(self) -> str:
-        return f"filter slider on {self.port}"
-
-    @property
     def _link_hint(self) -> str:
         return (
             f"check that the slider is powered and connected, that {self.port} is an "
             f"Elliptec bus at {self.baudrate} baud and that its address is {self.address}"
         )
 
-    def _check_slot(self, slot: int) -> int:
-        if isinstance(slot, bool) or not isinstance(slot, int):
-            raise DeviceError(f"{self._where}: slot must be an integer, got {slot!r}")
-        if not 1 <= slot <= self.slot_count:
-            raise DeviceError(
-                f"{self._where}: slot {slot} is out of range 1..{self.slot_count} for the "
-                f"{self.info.model}; use a position number of the rig file's slider.positions"
-            )
-        return slot
-
-    def _serial_port(self) -> serial.Serial:
-        if self._serial is None:
-            raise DeviceError(f"{self._where} is closed; open a new Elliptec to use it")
-        return self._serial
+    @property
+    def _slot_range_note(self) -> str:
+        return f" for the {self.info.model}"
 
     def _exchange(self, mnemonic: str, data: str, timeout_s: float) -> bytes:
         """Send one command; return what arrives up to CR LF or the timeout."""
@@ -541,7 +501,7 @@ class Elliptec:
                 mnemonic,
                 data,
                 exc,
-                _show(raw, timeout_s),
+                show_reply(raw, timeout_s),
             )
             self._resync()
             return None, raw
@@ -552,7 +512,7 @@ class Elliptec:
         problem = hint = ""
         for attempt in range(1, self.retries + 1):
             packet, raw = self._attempt(mnemonic, "", self.timeout_s)
-            shown = _show(raw, self.timeout_s)
+            shown = show_reply(raw, self.timeout_s)
             if packet is not None and packet[0] == expected:
                 return packet[1], raw
             if packet is not None and packet[0] == "GS":
@@ -568,22 +528,10 @@ class Elliptec:
                 problem, hint = "no valid reply", self._link_hint
             if packet is not None:
                 self._resync()
-            problem += f" after {_attempts(attempt)} (last reply {shown})"
+            problem += f" after {attempts_text(attempt)} (last reply {shown})"
             logger.warning("%s: `%s` — %s", self._where, command, problem)
         raise DeviceError(f"{self._where}: `{command}` — {problem}; {hint}")
 
     def _read_pulses(self) -> tuple[int, bytes]:
         data, raw = self._request("gp", "PO")
         return decode_position(data), raw
-
-    def _resync(self) -> None:
-        """Discard what the device is still sending: drain the input until the line is quiet."""
-        ser = self._serial_port()
-        try:
-            ser.reset_input_buffer()
-            ser.timeout = self._quiet_s
-            for _ in range(_MAX_DRAIN_READS):
-                if not ser.read(max(1, ser.in_waiting)):  # returns at the first byte
-                    break
-        except serial.SerialException as exc:
-            raise DeviceError(f"{self._where}: reading failed ({exc}); {self._link_hint}") from exc

@@ -15,12 +15,12 @@ command and the last reply.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 from typing import ClassVar
 
 import serial
 
+from labkit.devices._serial_slider import SerialSlider, attempts_text, show_reply
 from labkit.devices.serial_ports import open_port
 from labkit.errors import ConfigError, DeviceError
 
@@ -30,10 +30,6 @@ logger = logging.getLogger(__name__)
 
 #: The wheel's prompt: ends every reply.
 PROMPT = b"> "
-
-#: Most reads of a drain (each waits for the line to be quiet), so that a device that never
-#: stops talking cannot hold the driver forever.
-_MAX_DRAIN_READS = 50
 
 
 class MalformedReply(ValueError):
@@ -81,17 +77,6 @@ def parse_reply(command: str, reply: bytes) -> list[str]:
     return lines
 
 
-def _show(reply: bytes, timeout_s: float) -> str:
-    """A reply for an error message: its repr, or that none came."""
-    if not reply:
-        return f"none within {timeout_s:g} s"
-    return repr(reply.decode("latin-1"))
-
-
-def _attempts(count: int) -> str:
-    return "1 attempt" if count == 1 else f"{count} attempts"
-
-
 def identify_fw102c(ser: serial.Serial) -> str | None:
     """Ask an open port for an FW102C's identification (``*idn?``), for discovery.
 
@@ -129,7 +114,7 @@ def identify_fw102c(ser: serial.Serial) -> str | None:
     return None
 
 
-class FW102C:
+class FW102C(SerialSlider):
     """A Thorlabs FW102C / FW212C filter wheel on a serial port (a :class:`FilterSlider`).
 
     Opening the port reads the wheel's identification (``*idn?``) and number of positions
@@ -191,7 +176,6 @@ class FW102C:
         self.move_timeout_s = float(move_timeout_s)
         self.retries = retries
         self.baudrate = baudrate
-        self._quiet_s = min(0.05, self.timeout_s / 4)
         self._serial: serial.Serial | None = open_port(
             port, baudrate=baudrate, timeout=timeout_s, write_timeout=timeout_s, exclusive=True
         )
@@ -201,7 +185,7 @@ class FW102C:
             answer, reply = self._query("pcount?")
             if not answer.isdigit() or int(answer) < 1:
                 raise DeviceError(
-                    f"{self._where}: `pcount?` — unexpected answer (reply {_show(reply, 0)}); "
+                    f"{self._where}: `pcount?` — unexpected answer (reply {show_reply(reply, 0)}); "
                     f"check that {port} is an FW102C/FW212C"
                 )
             self._slot_count = int(answer)
@@ -265,29 +249,16 @@ class FW102C:
                     return
                 problem = f"position reads back {reached}"
                 hint = "check that the wheel is not blocked"
-                shown = _show(reply, self.timeout_s)
+                shown = show_reply(reply, self.timeout_s)
             else:
                 if lines:  # an answer where none belongs
                     self._resync()
                 problem = "no valid reply" if lines is None else "unexpected answer"
                 hint = self._link_hint
-                shown = _show(reply, self.move_timeout_s)
-            problem += f" after {_attempts(attempt)} (last reply {shown})"
+                shown = show_reply(reply, self.move_timeout_s)
+            problem += f" after {attempts_text(attempt)} (last reply {shown})"
             logger.warning("%s: `%s` — %s", self._where, command, problem)
         raise DeviceError(f"{self._where}: `{command}` — {problem}; {hint}")
-
-    def close(self) -> None:
-        """Release the serial port (idempotent)."""
-        ser, self._serial = self._serial, None
-        if ser is not None:
-            with contextlib.suppress(serial.SerialException, OSError):  # already gone: fine
-                ser.close()
-
-    def __enter__(self) -> FW102C:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
     def __repr__(self) -> str:
         state = "open" if self._serial is not None else "closed"
@@ -296,38 +267,19 @@ class FW102C:
     # -- the exchange -------------------------------------------------------------------------
 
     @property
-    def _where(self) -> str:
-        return f"filter slider on {self.port}"
-
-    @property
     def _link_hint(self) -> str:
         return (
             f"check that the wheel is powered and connected and that {self.port} is an "
             f"FW102C at {self.baudrate} baud"
         )
 
-    def _check_slot(self, slot: int) -> int:
-        if isinstance(slot, bool) or not isinstance(slot, int):
-            raise DeviceError(f"{self._where}: slot must be an integer, got {slot!r}")
-        if not 1 <= slot <= self._slot_count:
-            raise DeviceError(
-                f"{self._where}: slot {slot} is out of range 1..{self._slot_count}; "
-                "use a position number of the rig file's slider.positions"
-            )
-        return slot
-
     def _parse_position(self, answer: str, reply: bytes) -> int:
         if answer.isdigit() and 1 <= int(answer) <= self._slot_count:
             return int(answer)
         raise DeviceError(
             f"{self._where}: `pos?` — position {answer!r} is not in 1..{self._slot_count} "
-            f"(reply {_show(reply, self.timeout_s)}); check that {self.port} is an FW102C"
+            f"(reply {show_reply(reply, self.timeout_s)}); check that {self.port} is an FW102C"
         )
-
-    def _serial_port(self) -> serial.Serial:
-        if self._serial is None:
-            raise DeviceError(f"{self._where} is closed; open a new FW102C to use it")
-        return self._serial
 
     def _write(self, data: bytes, command: str) -> None:
         try:
@@ -359,14 +311,14 @@ class FW102C:
             lines = parse_reply(command, reply)
         except MalformedReply as exc:
             logger.debug(
-                "%s: `%s` — %s (reply %s)", self._where, command, exc, _show(reply, timeout_s)
+                "%s: `%s` — %s (reply %s)", self._where, command, exc, show_reply(reply, timeout_s)
             )
             self._resync()
             return None, reply
         if lines and lines[0].startswith("Command error"):
             raise DeviceError(
                 f"{self._where}: `{command}` — the wheel answered {lines[0]!r} (reply "
-                f"{_show(reply, timeout_s)}); check the slot against the wheel's position "
+                f"{show_reply(reply, timeout_s)}); check the slot against the wheel's position "
                 "count (pcount?) and the rig file"
             )
         return lines, reply
@@ -384,12 +336,12 @@ class FW102C:
                 "%s: `%s` — no valid reply after %s (last reply %s)",
                 self._where,
                 command,
-                _attempts(attempt),
-                _show(reply, self.timeout_s),
+                attempts_text(attempt),
+                show_reply(reply, self.timeout_s),
             )
         raise DeviceError(
-            f"{self._where}: `{command}` — no valid reply after {_attempts(self.retries)} "
-            f"(last reply {_show(reply, self.timeout_s)}); {self._link_hint}"
+            f"{self._where}: `{command}` — no valid reply after {attempts_text(self.retries)} "
+            f"(last reply {show_reply(reply, self.timeout_s)}); {self._link_hint}"
         )
 
     def _start_clean(self) -> None:
@@ -400,17 +352,5 @@ class FW102C:
             ser.timeout = self.timeout_s
             ser.read_until(PROMPT)  # "Command error CMD_NOT_DEFINED" and the prompt
             ser.reset_input_buffer()
-        except serial.SerialException as exc:
-            raise DeviceError(f"{self._where}: reading failed ({exc}); {self._link_hint}") from exc
-
-    def _resync(self) -> None:
-        """Discard what the wheel is still sending: drain the input until the line is quiet."""
-        ser = self._serial_port()
-        try:
-            ser.reset_input_buffer()
-            ser.timeout = self._quiet_s
-            for _ in range(_MAX_DRAIN_READS):
-                if not ser.read(max(1, ser.in_waiting)):  # returns at the first byte
-                    break
         except serial.SerialException as exc:
             raise DeviceError(f"{self._where}: reading failed ({exc}); {self._link_hint}") from exc
