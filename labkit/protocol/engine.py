@@ -36,24 +36,23 @@ from labkit.session.store import FrameWriter, Session, now_iso
 
 
 class Progress(Protocol):
-    """Receives progress: the planned total, frames done, the current step."""
+    """Receives progress: the planned total, frames done, the current step.
 
-    def set_total(self, total: int, done: int) -> None: ...
+    Any object with these methods will do; subclasses inherit no-ops for what they skip.
+    """
 
-    def advance(self, frames: int) -> None: ...
-
-    def set_step(self, text: str) -> None: ...
-
-
-class _Silent:
     def set_total(self, total: int, done: int) -> None:
-        pass
+        """The plan now stores `total` frames, `done` of them already stored."""
 
     def advance(self, frames: int) -> None:
-        pass
+        """`frames` more frames were captured."""
 
     def set_step(self, text: str) -> None:
-        pass
+        """The step now running, in words."""
+
+
+class _IgnoreProgress(Progress):
+    """The default: progress goes nowhere."""
 
 
 class CaptureStopped(LabkitError):
@@ -114,7 +113,7 @@ class Engine:
         self.slider = slider
         self.stage = stage
         self.session = session
-        self.progress = progress or _Silent()
+        self.progress = progress or _IgnoreProgress()
         self.stop = stop or threading.Event()
         self.writer_workers = writer_workers
         self._state: dict[str, Any] = {}  # what the hardware is known to be doing

@@ -11,6 +11,7 @@ from _helpers import expected_counts, quick_plan
 from labkit.errors import ConfigError, DeviceError
 from labkit.io import read_raw_tiff
 from labkit.protocol import CaptureStopped, Engine, build_plan
+from labkit.protocol.engine import Progress
 from labkit.protocol.hardware import open_hardware
 from labkit.rig import load_rig
 from labkit.session import Session, key_of
@@ -55,20 +56,14 @@ def test_stop_then_resume_completes_without_duplicates(quick_rig_file: Path, tmp
     rig = load_rig(quick_rig_file)
     stop = threading.Event()
 
-    class StopAfter:
+    class StopAfter(Progress):
         def __init__(self) -> None:
             self.done = 0
-
-        def set_total(self, total: int, done: int) -> None:
-            pass
 
         def advance(self, frames: int) -> None:
             self.done += frames
             if self.done == 9:
                 stop.set()
-
-        def set_step(self, text: str) -> None:
-            pass
 
     with pytest.raises(CaptureStopped, match="run the same command again"):
         _run(rig, tmp_path / "s", progress=StopAfter(), stop=stop)
