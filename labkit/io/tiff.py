@@ -27,7 +27,7 @@ def encode_raw_tiff(image: np.ndarray, metadata: dict[str, Any] | None = None) -
             f"a raw frame must be a 2-D uint8/uint16 mosaic, got {image.dtype} {image.shape}"
         )
     description = json.dumps(
-        {"shape": list(image.shape), "labkit": metadata or {}}, default=_jsonable
+        {"shape": list(image.shape), "labkit": metadata or {}}, default=json_default
     )
     buffer = io.BytesIO()
     tifffile.imwrite(
@@ -74,7 +74,8 @@ def read_raw_tiff(path: str | Path) -> tuple[np.ndarray, dict[str, Any]]:
     return image, metadata
 
 
-def _jsonable(value: Any) -> Any:
+def json_default(value: Any) -> Any:
+    """``json.dumps`` fallback: numpy scalars and arrays as Python values, others as text."""
     if isinstance(value, np.generic):
         return value.item()
     if isinstance(value, np.ndarray):

@@ -20,14 +20,13 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import yaml
 
 import labkit
 from labkit.errors import ConfigError, DataError
 from labkit.frame import Frame, FrameKey
 from labkit.io.atomic import atomic_path, fsync_directory, write_text_atomic
-from labkit.io.tiff import encode_raw_tiff
+from labkit.io.tiff import encode_raw_tiff, json_default
 from labkit.rig import Rig, rig_from_dict
 
 SESSION_FORMAT = 1
@@ -229,7 +228,7 @@ class Session:
         return record
 
     def _append(self, record: dict[str, Any]) -> None:
-        line = json.dumps(record, separators=(",", ":"), default=_jsonable) + "\n"
+        line = _record_line(record)
         with self._lock:
             fd = os.open(self.folder / MANIFEST_FILE, os.O_WRONLY | os.O_APPEND | os.O_CREAT)
             try:
@@ -260,10 +259,7 @@ class Session:
         with self._lock:
             for key in keys:
                 self.records.pop(key, None)
-            text = "".join(
-                json.dumps(r, separators=(",", ":"), default=_jsonable) + "\n"
-                for r in self.records.values()
-            )
+            text = "".join(_record_line(r) for r in self.records.values())
             write_text_atomic(self.folder / MANIFEST_FILE, text)
 
     def remove_leftovers(self) -> list[Path]:
@@ -387,9 +383,6 @@ def _read_manifest(path: Path) -> dict[str, dict]:
     return records
 
 
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    return str(value)
+def _record_line(record: dict[str, Any]) -> str:
+    """One manifest line: compact JSON and a newline."""
+    return json.dumps(record, separators=(",", ":"), default=json_default) + "\n"
