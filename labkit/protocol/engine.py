@@ -129,6 +129,7 @@ class Engine:
         plan = self.plan()
         validate_plan(plan, self.camera, self.slider)
         self._configure_camera()
+        self._shape = self.camera.shape  # read once: a device round-trip on real cameras
         session.remove_leftovers()
         problems = session.verify()
         if problems:
@@ -218,15 +219,16 @@ class Engine:
             self.progress.advance(1)
 
     def _check_frame(self, frame: Frame, key: FrameKey) -> None:
-        where = f"camera {self.camera.identity.serial}, frame {frame.frame_id} for {key.id}"
         if frame.status != "SUCCESS":
-            raise DeviceError(f"{where}: buffer status {frame.status}; the session can be resumed")
-        if frame.image.shape != self.camera.shape:
-            raise DeviceError(f"{where}: image shape {frame.image.shape} ≠ {self.camera.shape}")
-        if abs(frame.exposure_s - key.exposure_s) > 1e-9 * max(1.0, key.exposure_s):
-            raise DeviceError(
-                f"{where}: exposure {frame.exposure_s} s ≠ planned {key.exposure_s} s"
-            )
+            problem = f"buffer status {frame.status}; the session can be resumed"
+        elif frame.image.shape != self._shape:
+            problem = f"image shape {frame.image.shape} ≠ {self._shape}"
+        elif abs(frame.exposure_s - key.exposure_s) > 1e-9 * max(1.0, key.exposure_s):
+            problem = f"exposure {frame.exposure_s} s ≠ planned {key.exposure_s} s"
+        else:
+            return
+        serial = self.camera.identity.serial
+        raise DeviceError(f"camera {serial}, frame {frame.frame_id} for {key.id}: {problem}")
 
     def _meter(self, step: Meter, report: CaptureReport) -> None:
         auto = self.rig.plan.auto
