@@ -37,6 +37,7 @@ One GenTL producer can be loaded only once per process, so cameras on the same
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import math
 import threading
@@ -889,10 +890,8 @@ class GenICamCamera:
     def _device_timestamp_ns(buffer: Buffer) -> int:
         """Device timestamp, ns; 0 when the producer reports none."""
         module = buffer.module
-        try:
+        with contextlib.suppress(Exception):  # producers without ns timestamps raise
             return int(module.timestamp_ns)
-        except Exception:
-            pass
         try:
             ticks = int(module.timestamp)
             frequency = int(module.parent.parent.timestamp_frequency)
