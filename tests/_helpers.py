@@ -41,3 +41,33 @@ def expected_counts(
     clean = ~ndimage.binary_dilation(saturated, iterations=2)
     counts = np.minimum(electrons, model.full_well_e) * model.gain_factor(0.0)
     return np.minimum(counts + model.black_level_dn, model.adc_max), clean
+
+
+def simulate_bracket(sensor, irradiance, exposures_s, *, replicates=5, darks=5, rng):
+    """Frames of an exposure bracket straight from a simulated sensor (no camera, no disk).
+
+    Returns (exposure inputs, {exposure: DarkFrame}, {exposure: mean true exposure s}); the
+    true exposures include the shutter jitter of every replicate.
+    """
+    from labkit.hdr import DarkFrame, ExposureInput
+
+    inputs, dark_frames, actual = [], {}, {}
+    for t in exposures_s:
+        frames, real = [], []
+        for _ in range(replicates):
+            counts, exposure = sensor.expose(irradiance, t, rng=rng)
+            frames.append(counts)
+            real.append(exposure)
+        inputs.append(ExposureInput.from_arrays(t, frames))
+        actual[t] = float(np.mean(real))
+        dark = [sensor.expose(None, t, rng=rng)[0] for _ in range(darks)]
+        dark_frames[t] = DarkFrame.from_frames(ExposureInput.from_arrays(t, dark))
+    return inputs, dark_frames, actual
+
+
+def sensor_levels(model):
+    """SensorLevels of a simulated SensorModel at 0 dB (what the sim camera reports)."""
+    from labkit.hdr import SensorLevels
+
+    full = model.full_well_e * model.gain_factor(0.0) + model.black_level_dn
+    return SensorLevels(float(min(np.floor(full + 0.5), model.adc_max)), model.black_level_dn)

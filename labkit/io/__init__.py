@@ -1,19 +1,35 @@
-"""Files: atomic writes, raw TIFF frames and PNG previews."""
+"""Files: atomic writes, raw TIFF frames, OpenEXR raw/spectral images, PNG previews."""
 
 from labkit.io.atomic import atomic_path, atomic_write, fsync_directory, write_text_atomic
+from labkit.io.exr import (
+    RawImage,
+    SpectralImage,
+    band_name,
+    read_raw_exr,
+    read_spectral_exr,
+    write_raw_exr,
+    write_spectral_exr,
+)
 from labkit.io.preview import demosaic_bilinear, raw_preview, to_display, write_png
 from labkit.io.tiff import encode_raw_tiff, read_raw_tiff, write_raw_tiff
 
 __all__ = [
+    "RawImage",
+    "SpectralImage",
     "atomic_path",
     "atomic_write",
+    "band_name",
     "demosaic_bilinear",
     "encode_raw_tiff",
     "fsync_directory",
     "raw_preview",
+    "read_raw_exr",
     "read_raw_tiff",
+    "read_spectral_exr",
     "to_display",
     "write_png",
+    "write_raw_exr",
     "write_raw_tiff",
+    "write_spectral_exr",
     "write_text_atomic",
 ]

@@ -343,8 +343,18 @@ def frame_record(key: FrameKey, frame: Frame, **facts: Any) -> dict[str, Any]:
         "saturation_dn": frame.extra.get("saturation_dn"),
         "file": key.path,
         "stored": now_iso(),
+        **_simulation_truth(frame),
         **facts,
     }
+
+
+def _simulation_truth(frame: Frame) -> dict[str, Any]:
+    """Ground truth a simulated camera knows (the shutter's real exposure, the lamp level)."""
+    truth = {name: frame.extra[name] for name in _SIM_TRUTH if name in frame.extra}
+    return {"sim": truth} if truth else {}
+
+
+_SIM_TRUTH = ("true_exposure_s", "light_level")
 
 
 def key_of(record: dict[str, Any]) -> FrameKey:

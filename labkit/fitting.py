@@ -1,0 +1,84 @@
+"""Scale factors between two measurements of the same signal: first principal component.
+
+Used for the HDR exposure scaling factors (thesis §4.2.3, after Darrodi et al.) and the
+relative channel sensitivities (Algorithm 12): pairs ``(x_i, y_i)`` lie on a line
+``y = s x`` through the origin, both coordinates noisy. The slope is the direction of the
+first principal component of the (uncentred) point cloud, i.e. total least squares
+through the origin. Each axis is first divided by its RMS so the fit is well conditioned
+and does not depend on the units of either measurement.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from labkit.errors import DataError
+
+
+@dataclass(frozen=True)
+class SlopeFit:
+    """Result of :func:`principal_slope`.
+
+    Attributes
+    ----------
+    slope : float
+        ``y ≈ slope · x``.
+    count : int
+        Number of point pairs used.
+    residual_rms : float
+        RMS orthogonal distance of the normalised points from the line (dimensionless;
+        0 for perfectly proportional data).
+    explained : float
+        Fraction of the normalised second moment along the line (1 = perfect).
+    """
+
+    slope: float
+    count: int
+    residual_rms: float
+    explained: float
+
+
+def principal_slope(x: np.ndarray, y: np.ndarray, *, min_count: int = 2) -> SlopeFit:
+    """Slope of the line through the origin along the first principal component of (x, y).
+
+    Parameters
+    ----------
+    x, y : ndarray
+        Paired measurements (same shape, any units); NaN/Inf pairs are not allowed.
+    min_count : int
+        Fewest pairs accepted.
+
+    Raises
+    ------
+    DataError
+        Too few pairs, non-finite values, or no signal on one axis.
+    """
+    x = np.asarray(x, dtype=np.float64).ravel()
+    y = np.asarray(y, dtype=np.float64).ravel()
+    if x.shape != y.shape:
+        raise DataError(f"principal_slope: x has {x.size} values but y has {y.size}")
+    if x.size < max(min_count, 2):
+        raise DataError(f"principal_slope: {x.size} pairs, need at least {max(min_count, 2)}")
+    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
+        raise DataError("principal_slope: pairs contain NaN or Inf")
+    scale_x = float(np.sqrt(np.mean(x * x)))
+    scale_y = float(np.sqrt(np.mean(y * y)))
+    if scale_x == 0 or scale_y == 0:
+        raise DataError("principal_slope: one of the two measurements is all zero")
+    u = x / scale_x
+    v = y / scale_y
+    moments = np.array([[np.mean(u * u), np.mean(u * v)], [np.mean(u * v), np.mean(v * v)]])
+    values, vectors = np.linalg.eigh(moments)
+    direction = vectors[:, 1]
+    if direction[0] == 0:
+        raise DataError("principal_slope: the fitted line is vertical (x carries no signal)")
+    slope = float(direction[1] / direction[0]) * scale_y / scale_x
+    total = float(values.sum())
+    return SlopeFit(
+        slope=slope,
+        count=int(x.size),
+        residual_rms=float(np.sqrt(max(values[0], 0.0))),
+        explained=float(values[1] / total) if total > 0 else 0.0,
+    )

@@ -1,0 +1,49 @@
+"""HDR raw images from exposure brackets (thesis §4.2.3, Algorithm 11, and a noise-aware merge).
+
+- :mod:`~labkit.hdr.stack` — streaming replicate statistics (mean, max, variance)
+- :mod:`~labkit.hdr.scaling` — exposure scaling factors from the first principal component
+- :mod:`~labkit.hdr.weights` — the thesis' blending weights (4.1), (4.2) with erosion
+- :mod:`~labkit.hdr.noise` — Poisson–Gaussian noise fitted from replicates and darks
+- :mod:`~labkit.hdr.merge` — one bracket → one HDR mosaic (``thesis`` or ``noise`` weights)
+- :mod:`~labkit.hdr.session` — a whole session → ``OUT/<scene>/<illumination>.exr``
+"""
+
+from labkit.hdr.merge import (
+    METHODS,
+    DarkFrame,
+    ExposureSummary,
+    HDRResult,
+    SensorLevels,
+    merge_exposures,
+)
+from labkit.hdr.noise import NoiseEstimator, NoiseModel
+from labkit.hdr.scaling import PairFactor, fit_pair_factor
+from labkit.hdr.session import HDRJob, HDRPlan, HDRRun, factor_table, plan_hdr, run_hdr
+from labkit.hdr.stack import ExposureInput, FrameSource, FrameStats, accumulate
+from labkit.hdr.weights import blend_weight, bloom_weight, local_weight
+
+__all__ = [
+    "METHODS",
+    "DarkFrame",
+    "ExposureInput",
+    "ExposureSummary",
+    "FrameSource",
+    "FrameStats",
+    "HDRJob",
+    "HDRPlan",
+    "HDRResult",
+    "HDRRun",
+    "NoiseEstimator",
+    "NoiseModel",
+    "PairFactor",
+    "SensorLevels",
+    "accumulate",
+    "blend_weight",
+    "bloom_weight",
+    "factor_table",
+    "fit_pair_factor",
+    "local_weight",
+    "merge_exposures",
+    "plan_hdr",
+    "run_hdr",
+]

@@ -1,0 +1,386 @@
+"""``labkit hdr``: every (scene, illumination) of a capture session → an HDR raw EXR.
+
+Reads the session manifest, groups frames by scene × illumination × exposure, checks
+that they can be merged (same size and CFA, darks for every exposure), and merges each
+group with :func:`labkit.hdr.merge.merge_exposures`. Dark frames are shared between
+scenes, so each exposure's mean dark is computed once and kept only while a later
+image still needs it.
+
+Outputs (``OUT/``): ``<scene>/<illumination>.exr`` (float32 ``raw`` [+ ``variance``]),
+``<scene>/<illumination>.png`` (preview) and ``hdr.yaml`` (index: scaling factors against
+the exposure-time ratios, noise model, warnings).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+from collections import Counter, defaultdict
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+import labkit
+from labkit.cfa import layout_from_pixel_format, pixel_format_bits
+from labkit.errors import DataError
+from labkit.frame import DARK, exposure_label
+from labkit.hdr.merge import DarkFrame, HDRResult, SensorLevels, merge_exposures
+from labkit.hdr.stack import ExposureInput, FrameSource
+from labkit.io.atomic import write_text_atomic
+from labkit.io.exr import RawImage, write_raw_exr
+from labkit.io.preview import raw_preview, write_png
+from labkit.io.tiff import json_default, read_raw_tiff
+
+INDEX_FILE = "hdr.yaml"
+
+
+@dataclass
+class HDRJob:
+    """The frames of one (scene, illumination) to merge."""
+
+    scene: str
+    illumination: str
+    wavelength_nm: float | None
+    exposures: list[ExposureInput]
+
+    @property
+    def frame_count(self) -> int:
+        """Frames to read (without darks)."""
+        return sum(len(e.frames) for e in self.exposures)
+
+    @property
+    def name(self) -> str:
+        """``scene/illumination``."""
+        return f"{self.scene}/{self.illumination}"
+
+
+@dataclass
+class HDRPlan:
+    """What :func:`plan_hdr` found in a session."""
+
+    session: Path
+    jobs: list[HDRJob]
+    darks: dict[float, ExposureInput]
+    cfa: str
+    shape: tuple[int, int]
+    levels: SensorLevels
+    no_dark: bool
+
+    @property
+    def frame_count(self) -> int:
+        """Frames the merge will read, darks included."""
+        needed = {e.exposure_s for job in self.jobs for e in job.exposures}
+        darks = sum(len(self.darks[t].frames) for t in needed if t in self.darks)
+        return sum(job.frame_count for job in self.jobs) + (0 if self.no_dark else darks)
+
+
+@dataclass
+class HDROutput:
+    """One merged image and where it went."""
+
+    job: HDRJob
+    result: HDRResult
+    exr: Path
+    preview: Path | None
+
+
+@dataclass
+class HDRRun:
+    """Everything :func:`run_hdr` wrote."""
+
+    out: Path
+    method: str
+    outputs: list[HDROutput] = field(default_factory=list)
+
+    @property
+    def index(self) -> Path:
+        """The ``hdr.yaml`` index."""
+        return self.out / INDEX_FILE
+
+
+def plan_hdr(
+    session_dir: str | Path,
+    *,
+    scenes: Sequence[str] | None = None,
+    illuminations: Sequence[str] | None = None,
+    no_dark: bool = False,
+) -> HDRPlan:
+    """Group a session's frames into merge jobs and check them.
+
+    Raises
+    ------
+    DataError
+        No frames; frames of different sizes or CFA layouts; missing dark frames
+        (unless `no_dark`).
+    """
+    from labkit.session import Session
+
+    session = Session.open(session_dir)
+    folder = session.folder
+    records = list(session.records.values())
+    if not records:
+        raise DataError(f"session {folder} holds no frames; run `labkit capture` first")
+    first = records[0]
+    shape = tuple(first["shape"])
+    cfa = layout_from_pixel_format(first["pixel_format"])
+    for record in records:
+        if tuple(record["shape"]) != shape:
+            raise DataError(
+                f"session {folder}: frame {record['key']} ({record['file']}) is "
+                f"{record['shape'][0]}×{record['shape'][1]} but frame {first['key']} is "
+                f"{shape[0]}×{shape[1]}; frames of different sizes cannot be merged"
+            )
+        layout = layout_from_pixel_format(record["pixel_format"])
+        if layout != cfa:
+            raise DataError(
+                f"session {folder}: frame {record['key']} has CFA {layout} "
+                f"({record['pixel_format']}) but frame {first['key']} has {cfa}; "
+                "one HDR image needs one CFA layout"
+            )
+
+    lit: dict[tuple[str, str], dict[float, list[dict]]] = defaultdict(lambda: defaultdict(list))
+    dark_records: dict[float, list[dict]] = defaultdict(list)
+    for record in records:
+        if record["dark"]:
+            dark_records[float(record["exposure_s"])].append(record)
+        else:
+            lit[(record["scene"], record["illumination"])][float(record["exposure_s"])].append(
+                record
+            )
+    rig = session.rig
+    jobs = []
+    for (scene, illumination), by_exposure in sorted(lit.items()):
+        if scenes and scene not in scenes:
+            continue
+        if illuminations and illumination not in illuminations:
+            continue
+        exposures = [
+            ExposureInput(t, [_source(folder, r) for r in _by_replicate(rs)])
+            for t, rs in sorted(by_exposure.items())
+        ]
+        band = rig.filter_for(illumination) if illumination != DARK else None
+        jobs.append(HDRJob(scene, illumination, band.centre_nm if band else None, exposures))
+    if not jobs:
+        wanted = ", ".join([*(scenes or []), *(illuminations or [])])
+        raise DataError(
+            f"session {folder} has no lit frames" + (f" for {wanted}" if wanted else "")
+        )
+    darks = {
+        t: ExposureInput(t, [_source(folder, r) for r in _by_replicate(rs)])
+        for t, rs in dark_records.items()
+    }
+    if not no_dark:
+        missing = sorted(
+            {e.exposure_s for job in jobs for e in job.exposures if e.exposure_s not in darks}
+        )
+        if missing:
+            labels = ", ".join(exposure_label(t) for t in missing)
+            raise DataError(
+                f"session {folder} has no dark frames at {labels}; resume the capture to take "
+                "them (`labkit capture` with the same rig and --session), or pass --no-dark "
+                "to subtract only the black level (dark current then stays in the image)"
+            )
+    return HDRPlan(folder, jobs, darks, cfa, shape, _levels(records, folder), no_dark)
+
+
+def run_hdr(
+    session_dir: str | Path,
+    out_dir: str | Path,
+    *,
+    method: str = "thesis",
+    no_dark: bool = False,
+    scenes: Sequence[str] | None = None,
+    illuminations: Sequence[str] | None = None,
+    previews: bool = True,
+    on_frame: Callable[[], None] | None = None,
+    on_image: Callable[[HDROutput], None] | None = None,
+) -> HDRRun:
+    """Merge every (scene, illumination) of a session into ``out_dir``.
+
+    Parameters
+    ----------
+    session_dir : path
+        A capture session (``labkit capture --session``).
+    out_dir : path
+        Output folder (created); existing images of the same names are replaced.
+    method : {"thesis", "noise"}
+        Blending weights, see :mod:`labkit.hdr.merge`.
+    no_dark : bool
+        Allow exposures without dark frames: subtract the black level instead.
+    scenes, illuminations : sequence of str or None
+        Merge only these (default: all).
+    previews : bool
+        Also write a PNG preview per image.
+    on_frame, on_image : callable or None
+        Progress callbacks: after each frame read, after each image written.
+    """
+    plan = plan_hdr(session_dir, scenes=scenes, illuminations=illuminations, no_dark=no_dark)
+    out = Path(out_dir)
+    run = HDRRun(out, method)
+    library = _DarkLibrary(plan, on_frame)
+    for job in plan.jobs:
+        result = merge_exposures(
+            job.exposures,
+            library.get,
+            cfa=plan.cfa,
+            levels=plan.levels,
+            method=method,
+            on_frame=on_frame,
+        )
+        if no_dark:
+            result.warnings.append("no dark frames subtracted (--no-dark): only the black level")
+        exr = out / job.scene / f"{job.illumination}.exr"
+        write_raw_exr(
+            exr,
+            RawImage(
+                raw=result.raw,
+                cfa=plan.cfa,
+                exposure_s=result.reference_exposure_s,
+                illumination=job.illumination,
+                wavelength_nm=job.wavelength_nm,
+                variance=result.variance,
+                labkit=_provenance(plan, job, result),
+            ),
+        )
+        preview = None
+        if previews:
+            preview = exr.with_suffix(".png")
+            write_png(
+                preview,
+                raw_preview(result.raw, plan.cfa, white_balance=job.wavelength_nm is None),
+            )
+        output = HDROutput(job, result, exr, preview)
+        run.outputs.append(output)
+        if on_image is not None:
+            on_image(output)
+    index = json.loads(json.dumps(_index(plan, run), default=json_default))  # plain types
+    write_text_atomic(run.index, yaml.safe_dump(index, sort_keys=False))
+    return run
+
+
+def factor_table(result: HDRResult) -> str:
+    """The Table 4.1 comparison as Markdown: fitted factors against exposure-time ratios."""
+    lines = [
+        "| exposure | t_ref/t | fitted | R | G | B | difference |",
+        "|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for e in result.exposures:
+        channels = " | ".join(
+            "–" if e.per_channel[c] is None else f"{e.per_channel[c]:.4f}" for c in "RGB"
+        )
+        lines.append(
+            f"| {exposure_label(e.exposure_s)} | {e.nominal:.4f} | {e.factor:.4f} | {channels} "
+            f"| {e.disagreement:+.2%} |"
+        )
+    return "\n".join(lines)
+
+
+class _DarkLibrary:
+    """Mean darks per exposure, computed on first use and dropped after their last use."""
+
+    def __init__(self, plan: HDRPlan, on_frame: Callable[[], None] | None) -> None:
+        self.plan = plan
+        self.on_frame = on_frame
+        self.uses = Counter(e.exposure_s for job in plan.jobs for e in job.exposures)
+        self.cache: dict[float, DarkFrame] = {}
+
+    def get(self, exposure_s: float) -> DarkFrame:
+        if self.plan.no_dark or exposure_s not in self.plan.darks:
+            dark = DarkFrame.black_level(exposure_s, self.plan.levels.black_level_dn)
+        elif exposure_s in self.cache:
+            dark = self.cache[exposure_s]
+        else:
+            dark = DarkFrame.from_frames(
+                self.plan.darks[exposure_s], shape=self.plan.shape, on_frame=self.on_frame
+            )
+            self.cache[exposure_s] = dark
+        self.uses[exposure_s] -= 1
+        if self.uses[exposure_s] <= 0:
+            self.cache.pop(exposure_s, None)
+        return dark
+
+
+def _by_replicate(records: list[dict]) -> list[dict]:
+    return sorted(records, key=lambda r: int(r["replicate"]))
+
+
+def _source(folder: Path, record: dict) -> FrameSource:
+    path = folder / record["file"]
+    name = f"frame {record['key']} ({path})"
+
+    def load() -> np.ndarray:
+        try:
+            return read_raw_tiff(path)[0]
+        except DataError as error:
+            raise DataError(
+                f"{name}: {error}; `labkit session show {folder} --verify` lists damaged "
+                "frames and resuming the capture re-takes them"
+            ) from None
+
+    return FrameSource(name, load)
+
+
+def _levels(records: list[dict], folder: Path) -> SensorLevels:
+    """Saturation and black level from the manifest (else from the pixel format)."""
+    saturations = {r["saturation_dn"] for r in records if r.get("saturation_dn") is not None}
+    blacks = {r["black_level"] for r in records if r.get("black_level") is not None}
+    if saturations:
+        saturation = float(min(saturations))
+    else:
+        saturation = float(2 ** pixel_format_bits(records[0]["pixel_format"]) - 1)
+    black = float(min(blacks)) if blacks else 0.0
+    try:
+        return SensorLevels(saturation, black)
+    except DataError as error:
+        raise DataError(f"session {folder}: {error}") from None
+
+
+def _provenance(plan: HDRPlan, job: HDRJob, result: HDRResult) -> dict[str, Any]:
+    return {
+        "scene": job.scene,
+        "illumination": job.illumination,
+        "session": str(plan.session),
+        "software": f"labkit {labkit.__version__}",
+        "created": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "dark_subtraction": "black level only" if plan.no_dark else "mean dark frames",
+        **result.provenance(),
+    }
+
+
+def _index(plan: HDRPlan, run: HDRRun) -> dict[str, Any]:
+    return {
+        "format": 1,
+        "session": str(plan.session),
+        "method": run.method,
+        "cfa": plan.cfa,
+        "shape": list(plan.shape),
+        "software": f"labkit {labkit.__version__}",
+        "images": [
+            {
+                "scene": o.job.scene,
+                "illumination": o.job.illumination,
+                "wavelength_nm": o.job.wavelength_nm,
+                "file": str(o.exr.relative_to(run.out)),
+                "reference_exposure_s": o.result.reference_exposure_s,
+                "exposures": [
+                    {
+                        "exposure_s": e.exposure_s,
+                        "replicates": e.replicates,
+                        "darks": e.darks,
+                        "nominal_factor": round(e.nominal, 8),
+                        "factor": round(e.factor, 8),
+                        "disagreement_percent": round(100 * e.disagreement, 4),
+                    }
+                    for e in o.result.exposures
+                ],
+                "noise": None if o.result.noise is None else o.result.noise.as_dict(),
+                "saturated_pixels": o.result.saturated_pixels,
+                "warnings": o.result.warnings,
+            }
+            for o in run.outputs
+        ],
+    }

@@ -1,0 +1,230 @@
+"""OpenEXR files: HDR raw mosaics and spectral images (the formats of DESIGN.md).
+
+A **raw image** holds one float32 channel ``raw`` (the Bayer mosaic) and optionally
+``variance``; its header carries ``cfa``, ``exposure_s``, ``illumination``,
+``wavelength_nm`` (filtered light only) and ``labkit`` (JSON provenance, which also keeps
+the exact float64 values of the numeric attributes, since EXR float attributes are
+float32).
+
+A **spectral image** holds one float32 channel per band named by its centre wavelength
+(``S400.0``, …), with header ``wavelengths_nm`` and ``labkit`` (basis, provenance).
+
+Both are written atomically: a crash never leaves a partial file under the final name.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from labkit.cfa import check_layout
+from labkit.errors import DataError
+from labkit.io.atomic import atomic_path
+from labkit.io.tiff import json_default
+
+FORMAT_VERSION = 1
+
+
+@dataclass
+class RawImage:
+    """A raw (or HDR raw) mosaic with its metadata.
+
+    Attributes
+    ----------
+    raw : ndarray (rows, cols) float32
+        The mosaic; for HDR images, the fraction of saturation at `exposure_s`.
+    cfa : str
+        Bayer layout, e.g. ``"GBRG"``.
+    exposure_s : float
+        Exposure the values refer to, s.
+    illumination : str
+        Illumination name (slider position), e.g. ``"unfiltered"`` or ``"550"``.
+    wavelength_nm : float or None
+        Centre wavelength of the bandpass filter, nm (None for unfiltered light).
+    variance : ndarray (rows, cols) float32 or None
+        Per-pixel variance of `raw`, in `raw` units squared.
+    labkit : dict
+        Provenance and method-specific facts (JSON).
+    """
+
+    raw: np.ndarray
+    cfa: str
+    exposure_s: float
+    illumination: str
+    wavelength_nm: float | None = None
+    variance: np.ndarray | None = None
+    labkit: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class SpectralImage:
+    """A spectral image (rows, cols, bands) with band centres in nm."""
+
+    cube: np.ndarray
+    wavelengths_nm: np.ndarray
+    labkit: dict[str, Any] = field(default_factory=dict)
+
+
+def band_name(wavelength_nm: float) -> str:
+    """Channel name of a spectral band, e.g. ``S550.0``."""
+    return f"S{float(wavelength_nm):.1f}"
+
+
+def write_raw_exr(path: str | Path, image: RawImage) -> None:
+    """Write a :class:`RawImage` as an OpenEXR file, atomically."""
+    import OpenEXR
+
+    raw = _checked_plane(path, "raw", image.raw)
+    channels = {"raw": raw}
+    if image.variance is not None:
+        variance = _checked_plane(path, "variance", image.variance)
+        if variance.shape != raw.shape:
+            raise DataError(f"{path}: variance {variance.shape} does not match raw {raw.shape}")
+        channels["variance"] = variance
+    exposure = float(image.exposure_s)
+    if not np.isfinite(exposure) or exposure <= 0:
+        raise DataError(f"{path}: exposure_s must be a positive number of seconds, got {exposure}")
+    provenance = {
+        "format": FORMAT_VERSION,
+        "kind": "raw",
+        "exposure_s": exposure,
+        "wavelength_nm": image.wavelength_nm,
+        **image.labkit,
+    }
+    header: dict[str, Any] = {
+        "compression": OpenEXR.ZIP_COMPRESSION,
+        "type": OpenEXR.scanlineimage,
+        "cfa": check_layout(image.cfa),
+        "exposure_s": exposure,
+        "illumination": str(image.illumination),
+        "labkit": json.dumps(provenance, default=json_default),
+    }
+    if image.wavelength_nm is not None:
+        header["wavelength_nm"] = float(image.wavelength_nm)
+    _write(path, header, channels)
+
+
+def read_raw_exr(path: str | Path) -> RawImage:
+    """Read a raw EXR written by :func:`write_raw_exr`."""
+    header, channels = _read(path)
+    if "raw" not in channels:
+        raise DataError(
+            f"{path}: no 'raw' channel (channels: {sorted(channels)}); "
+            "is this a spectral image rather than a raw mosaic?"
+        )
+    if "cfa" not in header:
+        raise DataError(f"{path}: header has no 'cfa' attribute; not a labkit raw EXR")
+    provenance = _provenance(path, header)
+    exposure = provenance.get("exposure_s", header.get("exposure_s"))
+    if exposure is None:
+        raise DataError(f"{path}: header has no 'exposure_s' attribute")
+    wavelength = provenance.get("wavelength_nm", header.get("wavelength_nm"))
+    return RawImage(
+        raw=channels["raw"],
+        cfa=check_layout(str(header["cfa"])),
+        exposure_s=float(exposure),
+        illumination=str(header.get("illumination", "")),
+        wavelength_nm=None if wavelength is None else float(wavelength),
+        variance=channels.get("variance"),
+        labkit=provenance,
+    )
+
+
+def write_spectral_exr(path: str | Path, image: SpectralImage) -> None:
+    """Write a :class:`SpectralImage` (one float32 channel per band), atomically."""
+    cube = np.asarray(image.cube)
+    wavelengths = np.asarray(image.wavelengths_nm, dtype=np.float64).ravel()
+    if cube.ndim != 3 or cube.shape[2] != wavelengths.size:
+        raise DataError(
+            f"{path}: a spectral image must be (rows, cols, bands) with one wavelength per "
+            f"band; got {cube.shape} and {wavelengths.size} wavelengths"
+        )
+    names = [band_name(w) for w in wavelengths]
+    if len(set(names)) != len(names):
+        raise DataError(f"{path}: band centres must differ by ≥ 0.1 nm, got {wavelengths}")
+    channels = {
+        name: _checked_plane(path, name, cube[:, :, index]) for index, name in enumerate(names)
+    }
+    import OpenEXR
+
+    provenance = {
+        "format": FORMAT_VERSION,
+        "kind": "spectral",
+        "wavelengths_nm": wavelengths,
+        **image.labkit,
+    }
+    header = {
+        "compression": OpenEXR.ZIP_COMPRESSION,
+        "type": OpenEXR.scanlineimage,
+        "wavelengths_nm": wavelengths.astype(np.float32),
+        "labkit": json.dumps(provenance, default=json_default),
+    }
+    _write(path, header, channels)
+
+
+def read_spectral_exr(path: str | Path) -> SpectralImage:
+    """Read a spectral EXR written by :func:`write_spectral_exr`."""
+    header, channels = _read(path)
+    provenance = _provenance(path, header)
+    wavelengths = provenance.get("wavelengths_nm", header.get("wavelengths_nm"))
+    if wavelengths is None:
+        raise DataError(f"{path}: header has no 'wavelengths_nm'; not a labkit spectral EXR")
+    wavelengths = np.asarray(wavelengths, dtype=np.float64).ravel()
+    try:
+        planes = [channels[band_name(w)] for w in wavelengths]
+    except KeyError as missing:
+        raise DataError(f"{path}: band channel {missing} is missing") from None
+    return SpectralImage(np.stack(planes, axis=-1), wavelengths, provenance)
+
+
+def _checked_plane(path: str | Path, name: str, plane: np.ndarray) -> np.ndarray:
+    plane = np.asarray(plane)
+    if plane.ndim != 2:
+        raise DataError(f"{path}: channel {name!r} must be 2-D, got shape {plane.shape}")
+    plane = np.ascontiguousarray(plane, dtype=np.float32)
+    bad = int(np.count_nonzero(~np.isfinite(plane)))
+    if bad:
+        raise DataError(
+            f"{path}: channel {name!r} has {bad} NaN/Inf pixels; refusing to write them"
+        )
+    return plane
+
+
+def _write(path: str | Path, header: dict[str, Any], channels: dict[str, np.ndarray]) -> None:
+    import OpenEXR
+
+    with atomic_path(path) as temp:
+        OpenEXR.File(header, channels).write(str(temp))
+
+
+def _read(path: str | Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    import OpenEXR
+
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"EXR file {path} does not exist")
+    try:
+        exr = OpenEXR.File(str(path), separate_channels=True)
+        header = dict(exr.header())
+        channels = {
+            name: np.asarray(channel.pixels, dtype=np.float32)
+            for name, channel in exr.channels().items()
+        }
+    except Exception as error:  # the binding raises bare RuntimeErrors on bad files
+        raise DataError(f"{path} is not a readable OpenEXR file ({error})") from None
+    return header, channels
+
+
+def _provenance(path: str | Path, header: dict[str, Any]) -> dict[str, Any]:
+    text = header.get("labkit")
+    if text is None:
+        return {}
+    try:
+        value = json.loads(text)
+    except (TypeError, json.JSONDecodeError):
+        raise DataError(f"{path}: the 'labkit' header attribute is not valid JSON") from None
+    return value if isinstance(value, dict) else {}
