@@ -55,21 +55,21 @@ def principal_slope(x: np.ndarray, y: np.ndarray, *, min_count: int = 2) -> Slop
     DataError
         Too few pairs, non-finite values, or no signal on one axis.
     """
-    x = np.asarray(x, dtype=np.float64).ravel()
-    y = np.asarray(y, dtype=np.float64).ravel()
+    x = np.asarray(x).ravel()
+    y = np.asarray(y).ravel()
     if x.shape != y.shape:
         raise DataError(f"principal_slope: x has {x.size} values but y has {y.size}")
     if x.size < max(min_count, 2):
         raise DataError(f"principal_slope: {x.size} pairs, need at least {max(min_count, 2)}")
-    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
+    sxx, sxy, syy = _moments(x, y)
+    if not np.isfinite(sxx + sxy + syy):
         raise DataError("principal_slope: pairs contain NaN or Inf")
-    scale_x = float(np.sqrt(np.mean(x * x)))
-    scale_y = float(np.sqrt(np.mean(y * y)))
-    if scale_x == 0 or scale_y == 0:
+    if sxx == 0 or syy == 0:
         raise DataError("principal_slope: one of the two measurements is all zero")
-    u = x / scale_x
-    v = y / scale_y
-    moments = np.array([[np.mean(u * u), np.mean(u * v)], [np.mean(u * v), np.mean(v * v)]])
+    scale_x = float(np.sqrt(sxx / x.size))
+    scale_y = float(np.sqrt(syy / x.size))
+    cross = sxy / np.sqrt(sxx * syy)  # mean(u v) of the RMS-normalised pairs
+    moments = np.array([[1.0, cross], [cross, 1.0]])
     values, vectors = np.linalg.eigh(moments)
     direction = vectors[:, 1]
     if direction[0] == 0:
@@ -82,3 +82,18 @@ def principal_slope(x: np.ndarray, y: np.ndarray, *, min_count: int = 2) -> Slop
         residual_rms=float(np.sqrt(max(values[0], 0.0))),
         explained=float(values[1] / total) if total > 0 else 0.0,
     )
+
+
+_CHUNK = 1 << 18
+
+
+def _moments(x: np.ndarray, y: np.ndarray) -> tuple[float, float, float]:
+    """(Σx², Σxy, Σy²) in float64, a chunk at a time (no full-size float64 copies)."""
+    sxx = sxy = syy = 0.0
+    for start in range(0, x.size, _CHUNK):
+        a = x[start : start + _CHUNK].astype(np.float64)
+        b = y[start : start + _CHUNK].astype(np.float64)
+        sxx += float(a @ a)
+        sxy += float(a @ b)
+        syy += float(b @ b)
+    return sxx, sxy, syy

@@ -2,15 +2,17 @@
 
 from labkit.bench.capture import bench_capture
 from labkit.bench.harness import Measurement, machine_info, measure, write_report
+from labkit.bench.hdr import bench_hdr
 from labkit.bench.sim import bench_sim
 
 #: Stage name → benchmark function (rig path, repeats) → (cases, notes).
-BENCHMARKS = {"sim": bench_sim, "capture": bench_capture}
+BENCHMARKS = {"sim": bench_sim, "capture": bench_capture, "hdr": bench_hdr}
 
 __all__ = [
     "BENCHMARKS",
     "Measurement",
     "bench_capture",
+    "bench_hdr",
     "bench_sim",
     "machine_info",
     "measure",

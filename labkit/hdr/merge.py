@@ -376,6 +376,10 @@ def merge_exposures(
         total += weight * scaled
         weight_sum += weight
         previous = (signal, usable, exposure.exposure_s)
+        # free this exposure's frame-sized temporaries before the next one is read
+        del stats, dark, scaled, weight, unclipped
+        if noise_aware:
+            del expected, shot, variance, positive
 
     reference = order[-1].exposure_s
     reference_chain = chains[reference]

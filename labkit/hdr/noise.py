@@ -38,22 +38,31 @@ class _Sums:
 
     @classmethod
     def of(cls, u: np.ndarray, v: np.ndarray) -> _Sums:
-        """Weighted moments; weights ≈ 1 / var² so bright, noisy variances do not dominate."""
-        w = 1.0 / (u + _CROSSOVER) ** 2
-        wu = w * u
-        wu2 = wu * u
-        return cls(
-            int(u.size),
-            float(w.sum()),
-            float(wu.sum()),
-            float(wu2.sum()),
-            float(wu2 @ u),
-            float((wu2 * u) @ u),
-            float(w @ v),
-            float(wu @ v),
-            float(wu2 @ v),
-        )
+        """Weighted moments; weights ≈ 1 / var² so bright, noisy variances do not dominate.
 
+        Computed a chunk at a time in float64, so no full-size float64 copies are made.
+        """
+        totals = np.zeros(8)
+        for start in range(0, u.size, _CHUNK):
+            a = u[start : start + _CHUNK].astype(np.float64)
+            b = v[start : start + _CHUNK].astype(np.float64)
+            w = 1.0 / (a + _CROSSOVER) ** 2
+            wu = w * a
+            wu2 = wu * a
+            totals += (
+                w.sum(),
+                wu.sum(),
+                wu2.sum(),
+                wu2 @ a,
+                (wu2 * a) @ a,
+                w @ b,
+                wu @ b,
+                wu2 @ b,
+            )
+        return cls(int(u.size), *(float(t) for t in totals))
+
+
+_CHUNK = 1 << 18
 
 #: Signal (fraction of saturation) where shot noise starts to dominate a sample variance;
 #: weights are ∝ 1 / (u + crossover)², i.e. ∝ 1 / variance² up to a constant.
@@ -131,8 +140,9 @@ class NoiseEstimator:
         select = usable & (signal >= lo) & (signal <= hi)
         if np.count_nonzero(select) < _MIN_SAMPLES:
             return
-        u = signal[select].astype(np.float64) / self.saturation_range
-        self._sums[exposure_s] = _Sums.of(u, variance[select].astype(np.float64))
+        u = signal[select]
+        u /= np.float32(self.saturation_range)
+        self._sums[exposure_s] = _Sums.of(u, variance[select])
         self._fit = None
 
     @property

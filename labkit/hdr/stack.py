@@ -66,7 +66,7 @@ class FrameStats:
         Number of replicates.
     mean : ndarray (rows, cols) float32
         Mean counts, DN.
-    maximum : ndarray (rows, cols) float32
+    maximum : ndarray (rows, cols), the frames' integer dtype
         Largest replicate value, DN (detects clipping in any replicate).
     variance : ndarray (rows, cols) float32 or None
         Unbiased sample variance across replicates, DN² (None unless asked for and
@@ -132,10 +132,10 @@ def accumulate(
             first = image.astype(np.float32)
             total = np.zeros_like(first)
             squares = np.zeros_like(first) if with_variance else None
-            maximum = first.copy()
+            maximum = image.copy()  # integer counts: half the memory of float32
             continue
+        np.maximum(maximum, image, out=maximum)
         frame = image.astype(np.float32)
-        np.maximum(maximum, frame, out=maximum)
         frame -= first
         total += frame
         if squares is not None:

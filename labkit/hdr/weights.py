@@ -15,24 +15,35 @@ DISK_1 = ndimage.generate_binary_structure(2, 1)
 
 
 def _hump(p: np.ndarray) -> np.ndarray:
-    """1 − (2p − 1)¹² by repeated squaring (cheaper than a float power)."""
-    q = 2.0 * p - 1.0
+    """1 − (2p − 1)¹² by repeated squaring (cheaper than a float power), float32."""
+    q = np.asarray(p, dtype=np.float32) * np.float32(2.0)
+    q -= 1.0
     q *= q  # ²
-    q6 = q * q * q
+    q6 = q * q
+    q6 *= q  # ⁶
     q6 *= q6  # ¹²
-    return 1.0 - q6
+    np.subtract(np.float32(1.0), q6, out=q6)
+    return q6
+
+
+def _unit(p: np.ndarray) -> np.ndarray:
+    return np.clip(np.asarray(p, dtype=np.float32), 0.0, 1.0)
 
 
 def bloom_weight(p: np.ndarray) -> np.ndarray:
     """Equation (4.1): 1 − (2p − 1)¹² above p = 0.5, else 1."""
-    p = np.clip(np.asarray(p, dtype=np.float32), 0.0, 1.0)
-    return np.where(p > 0.5, _hump(p), np.float32(1.0)).astype(np.float32)
+    p = _unit(p)
+    weight = _hump(p)
+    weight[p <= 0.5] = 1.0
+    return weight
 
 
 def local_weight(p: np.ndarray) -> np.ndarray:
     """Equation (4.2): p (1 − (2p − 1)¹²)."""
-    p = np.clip(np.asarray(p, dtype=np.float32), 0.0, 1.0)
-    return (p * _hump(p)).astype(np.float32)
+    p = _unit(p)
+    weight = _hump(p)
+    weight *= p
+    return weight
 
 
 def blend_weight(p: np.ndarray, *, erode: bool = True) -> np.ndarray:
@@ -40,7 +51,11 @@ def blend_weight(p: np.ndarray, *, erode: bool = True) -> np.ndarray:
 
     `erode=False` skips the greyscale erosion (only to show what blooming does).
     """
-    bloom = bloom_weight(p)
+    p = _unit(p)
+    hump = _hump(p)
+    bloom = np.where(p > 0.5, hump, np.float32(1.0))
     if erode:
         bloom = ndimage.grey_erosion(bloom, footprint=DISK_1, mode="nearest")
-    return np.minimum(bloom, local_weight(p))
+    hump *= p  # the local weight
+    np.minimum(bloom, hump, out=hump)
+    return hump

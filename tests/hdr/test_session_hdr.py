@@ -1,0 +1,200 @@
+"""``labkit hdr`` on captured sessions: outputs, accuracy against the simulator, bad input."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from conftest import write_rig
+
+from labkit.cli import main
+from labkit.errors import DataError
+from labkit.io import read_raw_exr, read_raw_tiff
+from labkit.protocol import Engine
+from labkit.protocol.hardware import open_hardware
+from labkit.rig import load_rig
+from labkit.session import Session
+from labkit.sim import SimulatedRig
+
+HDR_PLAN = {
+    "sim.sensor.width": 96,
+    "sim.sensor.height": 64,
+    "plan.scenes": ["colorchecker"],
+    "plan.illuminations": ["unfiltered", "550"],
+    "plan.exposures_s": {"unfiltered": [0.002, 0.008, 0.032], "filtered": [0.02, 0.08, 0.32]},
+    "plan.replicates": {"unfiltered": 4, "filtered": 4},
+}
+
+
+def _capture(rig_file: Path, folder: Path) -> Session:
+    rig = load_rig(rig_file)
+    session, _ = Session.open_for(folder, rig)
+    with open_hardware(rig, fast=True) as hw:
+        Engine(rig, hw.camera, hw.slider, hw.stage, session).run()
+    return Session.open(folder)
+
+
+@pytest.fixture(scope="module")
+def captured(tmp_path_factory, sim_rig_path):
+    """A 48-frame session: colorchecker under unfiltered light and the 550 nm filter."""
+    root = tmp_path_factory.mktemp("hdr")
+    rig_file = write_rig(root, sim_rig_path, **HDR_PLAN)
+    return rig_file, _capture(rig_file, root / "session")
+
+
+@pytest.fixture
+def session_copy(captured, tmp_path):
+    """A private copy of the captured session (safe to damage)."""
+    _, session = captured
+    target = tmp_path / "session"
+    shutil.copytree(session.folder, target)
+    return target
+
+
+def _truth(rig_file: Path, session: Session, illumination: str, reference_s: float):
+    """Noise-free signal at the reference exposure, fraction of saturation (true shutter)."""
+    world = SimulatedRig(load_rig(rig_file))
+    model = world.sensor.model
+    records = [
+        r
+        for r in session.records.values()
+        if r["illumination"] == illumination and r["exposure_s"] == reference_s
+    ]
+    effective = np.mean([r["sim"]["true_exposure_s"] * r["sim"]["light_level"] for r in records])
+    gain = model.gain_factor(0.0)
+    saturation = records[0]["saturation_dn"] - records[0]["black_level"]
+    rate = world.irradiance("colorchecker", illumination) * world.sensor.prnu_map
+    return rate * effective * gain / saturation
+
+
+def _true_ratio(session: Session, illumination: str, reference_s: float, exposure_s: float):
+    def effective(t):
+        return np.mean(
+            [
+                r["sim"]["true_exposure_s"] * r["sim"]["light_level"]
+                for r in session.records.values()
+                if r["illumination"] == illumination and r["exposure_s"] == t
+            ]
+        )
+
+    return effective(reference_s) / effective(exposure_s)
+
+
+@pytest.mark.parametrize("method", ["thesis", "noise"])
+def test_session_merges_to_the_simulated_truth(captured, tmp_path, method):
+    from labkit.hdr import run_hdr
+
+    rig_file, session = captured
+    run = run_hdr(session.folder, tmp_path / "hdr", method=method)
+    assert sorted(o.exr.relative_to(run.out).as_posix() for o in run.outputs) == [
+        "colorchecker/550.exr",
+        "colorchecker/unfiltered.exr",
+    ]
+    for output in run.outputs:
+        image = read_raw_exr(output.exr)
+        illumination = output.job.illumination
+        assert image.cfa == "GBRG" and image.illumination == illumination
+        assert image.exposure_s == min(
+            HDR_PLAN["plan.exposures_s"]["filtered" if illumination == "550" else "unfiltered"]
+        )
+        assert image.wavelength_nm == (550.0 if illumination == "550" else None)
+        assert (image.variance is not None) == (method == "noise")
+        assert image.labkit["scene"] == "colorchecker" and image.labkit["method"] == method
+        assert np.isfinite(image.raw).all()
+        assert output.preview.is_file()
+        for row in output.result.exposures:  # scaling factors against the true shutter
+            true = _true_ratio(session, illumination, image.exposure_s, row.exposure_s)
+            assert row.factor == pytest.approx(true, rel=0.003)
+        truth = _truth(rig_file, session, illumination, image.exposure_s)
+        exposed = truth * 16 > 0.05  # properly exposed at the longest exposure
+        relative = image.raw[exposed] / truth[exposed] - 1
+        assert abs(float(np.median(relative))) < 0.005
+        assert float(np.sqrt(np.mean(relative**2))) < 0.03
+    index = yaml.safe_load(run.index.read_text())
+    assert index["method"] == method and len(index["images"]) == 2
+    assert index["images"][0]["exposures"][0]["nominal_factor"] == 1.0
+
+
+def test_missing_darks_are_refused_unless_no_dark(tmp_path, sim_rig_path):
+    from labkit.hdr import run_hdr
+
+    plan = {**HDR_PLAN, "plan.dark_frames": False, "plan.illuminations": ["unfiltered"]}
+    rig_file = write_rig(tmp_path, sim_rig_path, **plan)
+    session = _capture(rig_file, tmp_path / "s")
+    with pytest.raises(DataError, match=r"no dark frames at 2ms, 8ms, 32ms.*--no-dark"):
+        run_hdr(session.folder, tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+    run = run_hdr(session.folder, tmp_path / "out", no_dark=True, method="noise")
+    image = read_raw_exr(run.outputs[0].exr)
+    assert image.labkit["dark_subtraction"] == "black level only"
+    assert any("--no-dark" in w for w in image.labkit["warnings"])
+    noise = image.labkit["noise"]["constant_variance_dn2"]
+    assert {v["from"] for v in noise.values()} == {"fit"}
+
+
+def test_corrupt_tiff_names_the_frame_and_leaves_no_partial_exr(session_copy, tmp_path):
+    from labkit.hdr import run_hdr
+
+    session = Session.open(session_copy)
+    record = next(r for r in session.records.values() if r["illumination"] == "unfiltered")
+    (session_copy / record["file"]).write_bytes(b"II*\x00garbage")
+    with pytest.raises(DataError, match=rf"{record['key']}.*--verify"):
+        run_hdr(session_copy, tmp_path / "out")
+    leftovers = [p for p in (tmp_path / "out").rglob("*") if p.is_file()]
+    assert all(p.suffix in (".exr", ".png") and not p.name.startswith(".") for p in leftovers)
+    assert not (tmp_path / "out" / "colorchecker" / "unfiltered.exr").exists()
+
+
+def _edit_manifest(folder: Path, edit) -> None:
+    path = folder / "frames.jsonl"
+    lines = [json.loads(line) for line in path.read_text().splitlines()]
+    edit(lines)
+    path.write_text("".join(json.dumps(line) + "\n" for line in lines))
+
+
+def test_mismatched_sizes_and_cfa_are_refused(session_copy, tmp_path):
+    from labkit.hdr import plan_hdr
+
+    def shrink(lines):
+        lines[5]["shape"] = [32, 48]
+
+    _edit_manifest(session_copy, shrink)
+    with pytest.raises(DataError, match=r"is 32×48 but frame .* is 64×96"):
+        plan_hdr(session_copy)
+
+    def other_cfa(lines):
+        lines[5]["shape"] = [64, 96]
+        lines[7]["pixel_format"] = "BayerRG12"
+
+    _edit_manifest(session_copy, other_cfa)
+    with pytest.raises(DataError, match=r"has CFA RGGB .* GBRG"):
+        plan_hdr(session_copy)
+
+
+def test_frame_of_wrong_size_on_disk_is_named(session_copy, tmp_path):
+    from labkit.hdr import run_hdr
+    from labkit.io import write_raw_tiff
+
+    session = Session.open(session_copy)
+    record = next(r for r in session.records.values() if r["replicate"] == 2 and not r["dark"])
+    image, meta = read_raw_tiff(session_copy / record["file"])
+    write_raw_tiff(session_copy / record["file"], image[:32], meta)
+    with pytest.raises(DataError, match=rf"{record['key']}.*32×96 .* 64×96"):
+        run_hdr(session_copy, tmp_path / "out", illuminations=[record["illumination"]])
+
+
+def test_cli_prints_the_factor_table_and_one_line_errors(captured, tmp_path, capsys):
+    _, session = captured
+    out = tmp_path / "cli"
+    status = main(["hdr", str(session.folder), "--out", str(out), "--no-progress"])
+    text = capsys.readouterr().out
+    assert status == 0
+    assert "| exposure | t_ref/t | fitted |" in text and "colorchecker/550" in text
+    assert (out / "hdr.yaml").is_file()
+    status = main(["hdr", str(tmp_path / "nowhere"), "--out", str(out), "--no-progress"])
+    error = capsys.readouterr().err
+    assert status == 2 and error.count("\n") == 1 and "not a labkit session" in error
