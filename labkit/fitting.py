@@ -4,8 +4,8 @@ Used for the HDR exposure scaling factors (thesis §4.2.3, after Darrodi et al.)
 relative channel sensitivities (Algorithm 12): pairs ``(x_i, y_i)`` lie on a line
 ``y = s x`` through the origin, both coordinates noisy. The slope is the direction of the
 first principal component of the (uncentred) point cloud, i.e. total least squares
-through the origin. Each axis is first divided by its RMS so the fit is well conditioned
-and does not depend on the units of either measurement.
+through the origin. Both axes are divided by one common scale first (the geometry, and so
+the principal direction, is unchanged), and the second moments are summed in float64.
 """
 
 from __future__ import annotations
@@ -28,10 +28,10 @@ class SlopeFit:
     count : int
         Number of point pairs used.
     residual_rms : float
-        RMS orthogonal distance of the normalised points from the line (dimensionless;
-        0 for perfectly proportional data).
+        RMS orthogonal distance of the points from the line, relative to the RMS distance
+        of the points from the origin (0 for perfectly proportional data).
     explained : float
-        Fraction of the normalised second moment along the line (1 = perfect).
+        Fraction of the second moment along the line (1 = perfect).
     """
 
     slope: float
@@ -66,15 +66,13 @@ def principal_slope(x: np.ndarray, y: np.ndarray, *, min_count: int = 2) -> Slop
         raise DataError("principal_slope: pairs contain NaN or Inf")
     if sxx == 0 or syy == 0:
         raise DataError("principal_slope: one of the two measurements is all zero")
-    scale_x = float(np.sqrt(sxx / x.size))
-    scale_y = float(np.sqrt(syy / x.size))
-    cross = sxy / np.sqrt(sxx * syy)  # mean(u v) of the RMS-normalised pairs
-    moments = np.array([[1.0, cross], [cross, 1.0]])
+    scale = (sxx + syy) / (2.0 * x.size)  # a common scale² for both axes
+    moments = np.array([[sxx, sxy], [sxy, syy]]) / (x.size * scale)
     values, vectors = np.linalg.eigh(moments)
     direction = vectors[:, 1]
     if direction[0] == 0:
         raise DataError("principal_slope: the fitted line is vertical (x carries no signal)")
-    slope = float(direction[1] / direction[0]) * scale_y / scale_x
+    slope = float(direction[1] / direction[0])
     total = float(values.sum())
     return SlopeFit(
         slope=slope,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+from pathlib import Path
 
 import numpy as np
 
@@ -71,3 +72,22 @@ def sensor_levels(model):
 
     full = model.full_well_e * model.gain_factor(0.0) + model.black_level_dn
     return SensorLevels(float(min(np.floor(full + 0.5), model.adc_max)), model.black_level_dn)
+
+
+def write_rig(folder: Path, base: Path, **changes: object) -> Path:
+    """Write a variant of the rig file `base` into `folder`; `changes` maps dotted keys to values.
+
+    Example: ``write_rig(tmp, sim_rig_path, **{"sim.sensor.width": 96, "plan.scenes": ["flat"]})``.
+    """
+    import yaml
+
+    data = yaml.safe_load(base.read_text())
+    for dotted, value in changes.items():
+        node = data
+        *parents, leaf = dotted.split(".")
+        for key in parents:
+            node = node.setdefault(int(key) if key.isdigit() else key, {})
+        node[int(leaf) if leaf.isdigit() else leaf] = value
+    path = folder / "rig.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from _helpers import QUICK_PLAN
+from _helpers import QUICK_PLAN, write_rig
 
 from labkit.rig import load_rig
 from labkit.sim import SimulatedRig
@@ -57,25 +57,6 @@ def small_rig_file(tmp_path_factory: pytest.TempPathFactory, sim_rig_path: Path)
     data["sim"]["sensor"].update(width=96, height=64)
     data["sim"]["scenes"]["disks"].update(radius_px=4, pitch_px=16)
     path = tmp_path_factory.mktemp("rig") / "small.yaml"
-    path.write_text(yaml.safe_dump(data))
-    return path
-
-
-def write_rig(folder: Path, base: Path, **changes: object) -> Path:
-    """Write a variant of the rig file `base` into `folder`; `changes` maps dotted keys to values.
-
-    Example: ``write_rig(tmp, sim_rig_path, **{"sim.sensor.width": 96, "plan.scenes": ["flat"]})``.
-    """
-    import yaml
-
-    data = yaml.safe_load(base.read_text())
-    for dotted, value in changes.items():
-        node = data
-        *parents, leaf = dotted.split(".")
-        for key in parents:
-            node = node.setdefault(int(key) if key.isdigit() else key, {})
-        node[int(leaf) if leaf.isdigit() else leaf] = value
-    path = folder / "rig.yaml"
     path.write_text(yaml.safe_dump(data))
     return path
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from conftest import write_rig
+from _helpers import write_rig
 
 from labkit.cli import main
 from labkit.errors import DataError
