@@ -64,54 +64,11 @@ def hdr_bench_rig(rig: Rig) -> Rig:
     return rig.model_copy(update={"plan": plan})
 
 
-def truth_and_bound(rig: Rig, session: Session) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Noise-free reference signal, its Cramér–Rao variance, and the properly exposed mask.
-
-    All in fractions of the saturation range at the shortest exposure, with the shutter's
-    true exposure times and lamp levels recorded by the simulator.
-    """
-    from scipy import ndimage
-
-    from labkit.hdr.weights import DISK_1
-    from labkit.sim import SimulatedRig
-
-    world = SimulatedRig(rig)
-    sensor = world.sensor
-    model = sensor.model
-    gain = model.gain_factor(0.0)
-    records = list(session.records.values())
-    saturation = records[0]["saturation_dn"] - records[0]["black_level"]
-
-    def effective(t: float) -> float:
-        """Mean of true exposure × lamp level over the lit replicates at `t`, s."""
-        lit = [r["sim"] for r in records if r["exposure_s"] == t and not r["dark"]]
-        return float(np.mean([sim["true_exposure_s"] * sim["light_level"] for sim in lit]))
-
-    rate = world.irradiance(SCENE, "unfiltered") * sensor.prnu_map
-    reference = EXPOSURES_S[0]
-    truth = rate * np.float32(effective(reference) * gain / saturation)
-    information = np.zeros(world.shape, np.float64)
-    proper = np.zeros(world.shape, bool)
-    for t in EXPOSURES_S:
-        lit = effective(t)
-        signal = rate * np.float32(lit * gain)
-        dark = sensor.dark_map * np.float32(t * gain)
-        near = ndimage.binary_dilation(signal + dark >= 0.95 * saturation, DISK_1)
-        constant = gain * gain * (sensor.dark_map * t + model.read_noise_e**2) + 1 / 12
-        variance = (gain * signal + constant) / REPLICATES + constant / REPLICATES
-        factor = lit / effective(reference)
-        information += np.where(near, 0.0, factor**2 * saturation**2 / variance)
-        fraction = signal / saturation
-        proper |= (fraction >= 0.02) & (fraction <= 0.95)
-    region = proper & (information > 0)
-    bound = np.zeros(world.shape, np.float64)
-    bound[region] = 1.0 / information[region]
-    return truth, bound, region
-
-
 def bench_hdr(rig_path: str | Path, *, repeats: int = 2) -> tuple[list[Measurement], list[str]]:
     """Capture the bench session (untimed), then merge it with each method in a subprocess."""
     from labkit.io import read_raw_exr
+    from labkit.sim import SimulatedRig
+    from labkit.sim.hdr_truth import effective_exposures, merge_truth
 
     rig = hdr_bench_rig(load_rig(rig_path))
     work = Path(tempfile.mkdtemp(prefix="labkit-bench-hdr-", dir=os.environ.get("TMPDIR")))
@@ -130,8 +87,18 @@ def bench_hdr(rig_path: str | Path, *, repeats: int = 2) -> tuple[list[Measureme
             f"hdr: bench session of {frames} frames {shape[1]}×{shape[0]} "
             f"(captured in {time.perf_counter() - start:.0f} s, not timed)"
         )
-        truth, bound, region = truth_and_bound(rig, session)
-        crb = float(np.sqrt(np.mean(bound[region] / truth[region] ** 2)))
+        records = list(session.records.values())
+        world = SimulatedRig(rig)
+        truth = merge_truth(
+            world.sensor,
+            world.irradiance(SCENE, "unfiltered") * world.sensor.prnu_map,
+            effective_exposures(records),
+            replicates=REPLICATES,
+            darks=REPLICATES,
+            saturation_range=records[0]["saturation_dn"] - records[0]["black_level"],
+        )
+        region = truth.region
+        crb = truth.relative_rms_bound()
         for method in ("thesis", "noise"):
             out = work / method
             runs = [_child(folder, out, method) for _ in range(max(repeats, 1))]
@@ -139,7 +106,7 @@ def bench_hdr(rig_path: str | Path, *, repeats: int = 2) -> tuple[list[Measureme
             rss = max(r["max_rss_mib"] for r in runs)
             seconds = statistics.median(times)
             image = read_raw_exr(out / SCENE / "unfiltered.exr")
-            relative = (image.raw[region] - truth[region]) / truth[region]
+            relative = image.raw[region] / truth.signal[region] - 1
             rms = float(np.sqrt(np.mean(relative**2)))
             factors = image.labkit["exposures"]
             case = Measurement(

@@ -358,17 +358,18 @@ def merge_exposures(
             new = usable & ~has_pilot
             pilot[new] = scaled[new]
             has_pilot |= new
-            # signal at this exposure implied by the pilot, DN (≥ 0 so variances stay positive)
-            expected = np.maximum(pilot, 0) * np.float32(1.0 / chain)
-            shot = expected * np.float32(chain * chain / stats.count)
+            # shot-noise variance per unit gain, in the longest exposure's units²: the signal
+            # the pilot implies at this exposure (pilot / chain, ≥ 0), × chain² / replicates
+            shot = np.maximum(pilot, 0) * np.float32(chain / stats.count)
             dark_mean_var = constant / dark.count if dark.count else 0.0
             const = np.float32(chain * chain * (constant / stats.count + dark_mean_var))
             variance = np.float32(gain) * shot + const
             weight = np.zeros(shape, np.float32)
             positive = usable & (variance > 0)
             weight[positive] = 1.0 / variance[positive]
-            shot_part += weight * weight * shot
-            constant_part += weight * weight * const
+            squared = weight * weight
+            shot_part += squared * shot
+            constant_part += squared * const
         else:
             # p = 1 exactly where the mean reached saturation: per-pixel headroom above the dark
             headroom = np.float32(levels.saturation_dn) - np.asarray(dark.mean, np.float32)
@@ -379,7 +380,7 @@ def merge_exposures(
         # free this exposure's frame-sized temporaries before the next one is read
         del stats, dark, scaled, weight, unclipped
         if noise_aware:
-            del expected, shot, variance, positive
+            del shot, variance, positive, squared
 
     reference = order[-1].exposure_s
     reference_chain = chains[reference]

@@ -20,6 +20,7 @@ from labkit.hdr import (
     merge_exposures,
 )
 from labkit.hdr.weights import DISK_1
+from labkit.sim.hdr_truth import merge_truth
 from labkit.sim.sensor import Sensor, SensorModel
 
 EXPOSURES = [0.001 * 2**k for k in range(8)]  # 1 ms … 128 ms, 8 exposures
@@ -43,44 +44,30 @@ def ramp():
     return model, sensor, irradiance, inputs, darks, actual
 
 
-def _truth_and_bound(model, sensor, irradiance, actual):
-    """Ground truth (fraction of saturation at the true reference exposure) and the CRB.
-
-    The Cramér–Rao bound of the dark-subtracted replicate means (Gaussian, variance from
-    the sensor model incl. the dark-frame average) for the samples that are neither
-    near saturation nor next to it.
-    """
+def _truth(model, sensor, irradiance, actual):
+    """Signal at the true reference exposure and the Cramér–Rao bound of this bracket."""
     levels = sensor_levels(model)
-    g = model.gain_factor(0.0)
-    reference = EXPOSURES[0]
-    signal_rate = irradiance * sensor.prnu_map  # e⁻/s
-    truth = signal_rate * actual[reference] * g / levels.saturation_range
-    information = np.zeros(irradiance.shape)
-    proper = np.zeros(irradiance.shape, bool)
-    for t in EXPOSURES:
-        factor = actual[t] / actual[reference]
-        signal = signal_rate * actual[t] * g  # DN
-        raw = signal + sensor.dark_map * actual[t] * g
-        near = ndimage.binary_dilation(raw >= 0.95 * levels.saturation_range, DISK_1)
-        constant = g * g * (sensor.dark_map * actual[t] + model.read_noise_e**2) + 1 / 12
-        variance = (g * signal + constant) / REPLICATES + constant / DARKS
-        variance_ref = variance / factor**2 / levels.saturation_range**2
-        information += np.where(near, 0.0, 1.0 / variance_ref)
-        fraction = signal / levels.saturation_range
-        proper |= (fraction >= 0.02) & (fraction <= 0.95)
-    region = proper & (information > 0)
-    return truth, information, region, levels
+    truth = merge_truth(
+        sensor,
+        irradiance * sensor.prnu_map,
+        actual,
+        replicates=REPLICATES,
+        darks=DARKS,
+        saturation_range=levels.saturation_range,
+    )
+    return truth, levels
 
 
 @pytest.mark.parametrize("method", ["noise", "thesis"])
 def test_merge_reaches_the_cramer_rao_bound(ramp, method, record_property):
     model, sensor, irradiance, inputs, darks, actual = ramp
-    truth, information, region, levels = _truth_and_bound(model, sensor, irradiance, actual)
+    truth, levels = _truth(model, sensor, irradiance, actual)
+    region = truth.region
     result = merge_exposures(inputs, darks, cfa="GBRG", levels=levels, method=method)
     assert np.isfinite(result.raw).all()
-    relative = (result.raw - truth)[region] / truth[region]
+    relative = result.raw[region] / truth.signal[region] - 1
     rms = float(np.sqrt(np.mean(relative**2)))
-    bound = float(np.sqrt(np.mean(1.0 / information[region] / truth[region] ** 2)))
+    bound = truth.relative_rms_bound()
     record_property("rms_over_crb", rms / bound)
     limit = 1.10 if method == "noise" else 1.25  # the thesis weighting is reported beside it
     assert rms <= limit * bound, f"{method}: relative RMS {rms:.5f} vs CRB {bound:.5f}"
@@ -104,14 +91,15 @@ def test_scaling_factors_match_the_true_exposure_ratios_despite_jitter(ramp):
 
 def test_noise_model_and_variance_channel_are_calibrated(ramp):
     model, sensor, irradiance, inputs, darks, actual = ramp
-    truth, _, region, levels = _truth_and_bound(model, sensor, irradiance, actual)
+    truth, levels = _truth(model, sensor, irradiance, actual)
+    region = truth.region
     result = merge_exposures(inputs, darks, cfa="GBRG", levels=levels, method="noise")
     assert result.noise.gain_dn_per_e == pytest.approx(model.gain_dn_per_e, rel=0.03)
     expected_read = model.gain_dn_per_e**2 * model.read_noise_e**2 + 1 / 12
     assert result.noise.constant_variance_dn2[EXPOSURES[0]] == pytest.approx(
         expected_read, rel=0.05
     )
-    z2 = ((result.raw - truth) ** 2 / result.variance)[region]
+    z2 = ((result.raw - truth.signal) ** 2 / result.variance)[region]
     assert 0.9 < float(np.mean(z2)) < 1.1
     assert np.isfinite(result.variance).all() and (result.variance > 0).all()
 

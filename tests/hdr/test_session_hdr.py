@@ -19,6 +19,7 @@ from labkit.protocol.hardware import open_hardware
 from labkit.rig import load_rig
 from labkit.session import Session
 from labkit.sim import SimulatedRig
+from labkit.sim.hdr_truth import effective_exposures
 
 HDR_PLAN = {
     "sim.sensor.width": 96,
@@ -58,30 +59,16 @@ def session_copy(captured, tmp_path):
 def _truth(rig_file: Path, session: Session, illumination: str, reference_s: float):
     """Noise-free signal at the reference exposure, fraction of saturation (true shutter)."""
     world = SimulatedRig(load_rig(rig_file))
-    model = world.sensor.model
-    records = [
-        r
-        for r in session.records.values()
-        if r["illumination"] == illumination and r["exposure_s"] == reference_s
-    ]
-    effective = np.mean([r["sim"]["true_exposure_s"] * r["sim"]["light_level"] for r in records])
-    gain = model.gain_factor(0.0)
+    records = list(session.records.values())
+    effective = effective_exposures(records, illumination=illumination)[reference_s]
     saturation = records[0]["saturation_dn"] - records[0]["black_level"]
     rate = world.irradiance("colorchecker", illumination) * world.sensor.prnu_map
-    return rate * effective * gain / saturation
+    return rate * effective * world.sensor.model.gain_factor(0.0) / saturation
 
 
 def _true_ratio(session: Session, illumination: str, reference_s: float, exposure_s: float):
-    def effective(t):
-        return np.mean(
-            [
-                r["sim"]["true_exposure_s"] * r["sim"]["light_level"]
-                for r in session.records.values()
-                if r["illumination"] == illumination and r["exposure_s"] == t
-            ]
-        )
-
-    return effective(reference_s) / effective(exposure_s)
+    effective = effective_exposures(session.records.values(), illumination=illumination)
+    return effective[reference_s] / effective[exposure_s]
 
 
 @pytest.mark.parametrize("method", ["thesis", "noise"])

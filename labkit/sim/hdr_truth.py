@@ -1,0 +1,115 @@
+"""Ground truth for exposure brackets merged from the simulated rig.
+
+The simulated camera records each frame's true exposure and lamp level (``sim`` in
+``frames.jsonl``), so the noise-free signal at the reference exposure and the
+Cramér–Rao bound of a merge are known exactly. Used by ``labkit bench hdr`` and the tests.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from labkit.hdr.weights import DISK_1
+from labkit.sim.sensor import Sensor
+
+
+@dataclass
+class MergeTruth:
+    """What a perfect merge of a bracket would give, and how well any merge can do.
+
+    Attributes
+    ----------
+    signal : ndarray (rows, cols)
+        Noise-free signal at the reference (shortest) exposure, fraction of saturation.
+    bound : ndarray (rows, cols)
+        Cramér–Rao variance of `signal` (0 outside `region`).
+    region : ndarray of bool (rows, cols)
+        Properly exposed pixels: some exposure puts them within [low, high] of saturation.
+    """
+
+    signal: np.ndarray
+    bound: np.ndarray
+    region: np.ndarray
+
+    def relative_rms_bound(self) -> float:
+        """The bound on the relative RMS error over `region` (dimensionless)."""
+        region = self.region
+        return float(np.sqrt(np.mean(self.bound[region] / self.signal[region] ** 2)))
+
+
+def effective_exposures(
+    records: Iterable[Mapping], *, illumination: str | None = None
+) -> dict[float, float]:
+    """Exposure (s) → mean of true exposure × lamp level over its lit frames, s.
+
+    `records` are session manifest records of simulated frames; darks are skipped.
+    """
+    values: dict[float, list[float]] = {}
+    for record in records:
+        if record["dark"] or (illumination is not None and record["illumination"] != illumination):
+            continue
+        sim = record["sim"]
+        values.setdefault(float(record["exposure_s"]), []).append(
+            sim["true_exposure_s"] * sim["light_level"]
+        )
+    return {t: float(np.mean(v)) for t, v in values.items()}
+
+
+def merge_truth(
+    sensor: Sensor,
+    rate: np.ndarray,
+    effective: Mapping[float, float],
+    *,
+    replicates: int,
+    darks: int,
+    saturation_range: float,
+    low: float = 0.02,
+    high: float = 0.95,
+) -> MergeTruth:
+    """Noise-free signal and Cramér–Rao bound of a bracket merged at 0 dB gain.
+
+    Parameters
+    ----------
+    sensor : Sensor
+        The simulated sensor (its dark-current map and noise model).
+    rate : ndarray (rows, cols)
+        Signal electrons per second of every pixel, PRNU included, e⁻/s.
+    effective : mapping
+        Nominal exposure (s) → effective exposure (true exposure × lamp level), s.
+    replicates, darks : int
+        Lit and dark frames averaged per exposure.
+    saturation_range : float
+        Signal of a saturated pixel above black, DN.
+    low, high : float
+        Fractions of saturation bounding properly exposed samples.
+
+    Notes
+    -----
+    The bound is that of the dark-subtracted replicate means (Gaussian, with the sensor
+    model's Poisson–Gaussian variance and the dark-frame average's own noise), counting
+    only samples below `high` of saturation that are not next to one above it.
+    """
+    model = sensor.model
+    gain = model.gain_factor(0.0)
+    reference = min(effective)
+    truth = rate * np.float32(effective[reference] * gain / saturation_range)
+    information = np.zeros(rate.shape, np.float64)
+    proper = np.zeros(rate.shape, bool)
+    for t, lit in sorted(effective.items()):
+        signal = rate * np.float32(lit * gain)  # DN
+        dark = sensor.dark_map * np.float32(t * gain)
+        near = ndimage.binary_dilation(signal + dark >= high * saturation_range, DISK_1)
+        constant = gain * gain * (sensor.dark_map * t + model.read_noise_e**2) + 1 / 12
+        variance = (gain * signal + constant) / replicates + constant / darks
+        factor = lit / effective[reference]
+        information += np.where(near, 0.0, factor**2 * saturation_range**2 / variance)
+        fraction = signal / saturation_range
+        proper |= (fraction >= low) & (fraction <= high)
+    region = proper & (information > 0)
+    bound = np.zeros(rate.shape, np.float64)
+    bound[region] = 1.0 / information[region]
+    return MergeTruth(truth, bound, region)
