@@ -93,3 +93,30 @@ def check_consistent(images: Sequence[RawImage], *, what: str) -> None:
                 f"{first.raw.shape[1]}×{first.raw.shape[0]} {first.cfa}; all images of one "
                 "scene must come from the same camera mode (re-run `labkit hdr` on one session)"
             )
+
+
+def load_scene_hdr(folder: str | Path, scene: str) -> list[RawImage]:
+    """Every HDR image (filtered and unfiltered) of one scene, filtered ones by wavelength.
+
+    Raises
+    ------
+    DataError
+        The folder or the scene is missing, or the images disagree in shape or CFA.
+    """
+    root = Path(folder)
+    if not root.is_dir():
+        raise DataError(
+            f"HDR folder {root} does not exist; create it with `labkit hdr SESSION --out {root}`"
+        )
+    paths = sorted((root / scene).glob("*.exr"))
+    if not paths:
+        present = sorted(p.name for p in root.iterdir() if p.is_dir() and any(p.glob("*.exr")))
+        raise DataError(f"HDR folder {root} has no images of scene {scene!r}; scenes: {present}")
+    images = []
+    for path in paths:
+        image = read_raw_exr(path)
+        image.labkit[SOURCE_KEY] = str(path)
+        images.append(image)
+    check_consistent(images, what=f"scene {scene!r} in {root}")
+    images.sort(key=lambda image: (image.wavelength_nm is not None, image.wavelength_nm or 0.0))
+    return images

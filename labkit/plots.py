@@ -66,3 +66,75 @@ def plot_dispersion(
     axes[-1].set_title(f"{lens.spectral_profile}, {lens.radial_profile}")
     figure.tight_layout()
     save_figure(figure, path)
+
+
+def plot_dispersion_field(
+    displacement,
+    shape: tuple[int, int],
+    bands: list,
+    path: str | Path,
+    *,
+    centre: tuple[float, float] | None = None,
+    reference: str = "reference",
+    hull: np.ndarray | None = None,
+    step_px: int | None = None,
+) -> None:
+    """Dispersion per band like the thesis' Figure 5.3: signed radial magnitude and angle.
+
+    Parameters
+    ----------
+    displacement : callable
+        ``displacement(x, y, band) -> (dx, dy)`` in px, vectorised over x and y.
+    shape : (rows, cols)
+        Image size, px.
+    bands : list
+        Band labels passed to `displacement` (wavelengths in nm or channel names).
+    path : str or Path
+        PNG to write.
+    centre : (x, y), optional
+        Image centre for the radial sign (default: the geometric centre); positive
+        magnitudes point away from it.
+    reference : str
+        Label of the reference band, for titles.
+    hull : ndarray (k, 2), optional
+        Calibrated region outline to draw.
+    step_px : int, optional
+        Arrow spacing (default: about 16 arrows across).
+    """
+    rows, cols = shape
+    cx, cy = centre if centre is not None else ((cols - 1) / 2, (rows - 1) / 2)
+    stride = max(1, max(rows, cols) // 160)
+    yy, xx = np.mgrid[0:rows:stride, 0:cols:stride].astype(np.float64)
+    step = step_px or max(8, cols // 16)
+    ay, ax = np.mgrid[step // 2 : rows : step, step // 2 : cols : step].astype(np.float64)
+    radius = np.hypot(xx - cx, yy - cy)
+    radius[radius == 0] = 1.0
+    figure, axes = plt.subplots(2, len(bands), figsize=(4.4 * len(bands), 6.8), squeeze=False)
+    for k, band in enumerate(bands):
+        dx, dy = displacement(xx, yy, band)
+        signed = (dx * (xx - cx) + dy * (yy - cy)) / radius
+        limit = float(np.abs(signed).max()) or 1.0
+        adx, ady = displacement(ax, ay, band)
+        label = f"{band:g} nm" if isinstance(band, int | float) else str(band)
+        for row, (values, cmap, vmin, vmax, unit) in enumerate(
+            [
+                (signed, "RdBu_r", -limit, limit, "radial component (px, + outward)"),
+                (np.degrees(np.arctan2(dy, dx)), "twilight", -180, 180, "angle (deg)"),
+            ]
+        ):
+            axis = axes[row, k]
+            image = axis.imshow(
+                values,
+                extent=(-0.5, cols - 0.5, rows - 0.5, -0.5),
+                cmap=cmap,
+                vmin=vmin,
+                vmax=vmax,
+            )
+            axis.quiver(ax, ay, adx, ady, color="black", angles="xy", width=0.004)
+            if hull is not None and len(hull) >= 3:
+                closed = np.vstack([hull, hull[:1]])
+                axis.plot(closed[:, 0], closed[:, 1], "k--", lw=0.8)
+            axis.set_title(f"{label} vs {reference}")
+            figure.colorbar(image, ax=axis, label=unit, shrink=0.8)
+    figure.tight_layout()
+    save_figure(figure, path)

@@ -1,16 +1,23 @@
 """The benchmark harness behind ``labkit bench``: each stage writes JSON and Markdown."""
 
+from labkit.bench.calibrate import bench_calibrate
 from labkit.bench.capture import bench_capture
 from labkit.bench.harness import Measurement, machine_info, measure, write_report
 from labkit.bench.hdr import bench_hdr
 from labkit.bench.sim import bench_sim
 
 #: Stage name → benchmark function (rig path, repeats) → (cases, notes).
-BENCHMARKS = {"sim": bench_sim, "capture": bench_capture, "hdr": bench_hdr}
+BENCHMARKS = {
+    "sim": bench_sim,
+    "capture": bench_capture,
+    "hdr": bench_hdr,
+    "calibrate": bench_calibrate,
+}
 
 __all__ = [
     "BENCHMARKS",
     "Measurement",
+    "bench_calibrate",
     "bench_capture",
     "bench_hdr",
     "bench_sim",

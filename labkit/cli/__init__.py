@@ -11,10 +11,36 @@ import argparse
 import sys
 
 import labkit
-from labkit.cli import bench, calibrate, capture, demo, devices, hdr, rig, session, sim, synthesize
+from labkit.cli import (
+    bench,
+    calibrate,
+    capture,
+    correct,
+    demo,
+    devices,
+    dispersion,
+    hdr,
+    rig,
+    session,
+    sim,
+    synthesize,
+)
 from labkit.errors import LabkitError
 
-_MODULES = (rig, devices, capture, session, hdr, calibrate, synthesize, sim, demo, bench)
+_MODULES = (
+    rig,
+    devices,
+    capture,
+    session,
+    hdr,
+    calibrate,
+    synthesize,
+    dispersion,
+    correct,
+    sim,
+    demo,
+    bench,
+)
 
 
 def build_parser() -> argparse.ArgumentParser:

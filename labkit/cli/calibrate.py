@@ -1,7 +1,12 @@
 """``labkit calibrate …``: calibrations computed from HDR images.
 
-``labkit calibrate sensitivity HDR_DIR --out DIR``: relative channel sensitivity per
-filter band (thesis Algorithm 12), compared with what the rig's camera response predicts.
+``labkit calibrate sensitivity HDR_DIR --out DIR``
+    relative channel sensitivity per filter band (thesis Algorithm 12), compared with
+    what the rig's camera response predicts.
+``labkit calibrate vignetting HDR_DIR --scene disks --illumination 600 --out V.yaml``
+    a polynomial model of intensity fall-off (thesis §3.2.2).
+``labkit calibrate dispersion HDR_DIR --scene disks --reference 600 --out MODEL.yaml``
+    a polynomial or thin-plate spline model of lateral chromatic aberration (§3.2).
 """
 
 from __future__ import annotations
@@ -52,6 +57,97 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="ignore pixels at or above this fraction of saturation (default 0.95)",
     )
     sensitivity.set_defaults(handler=_sensitivity)
+    _register_vignetting(actions)
+    _register_dispersion(actions)
+
+
+def _register_vignetting(actions: argparse._SubParsersAction) -> None:
+    parser = actions.add_parser(
+        "vignetting",
+        help="intensity fall-off model (thesis §3.2.2)",
+        description="Fit a bivariate polynomial (degree 0–5 by 10-fold cross-validation, "
+        "normalised coordinates and intensities) to the Green pixels of one HDR image inside "
+        "a mask: a user mask, or the paper background of the disk pattern when no mask is "
+        "given (else the whole image). Writes the model (YAML) and a PNG of the fitted "
+        "fall-off next to it.",
+    )
+    parser.add_argument("hdr", type=Path, help="HDR folder from `labkit hdr`")
+    parser.add_argument("--scene", default="disks", help="scene to use (default: disks)")
+    parser.add_argument(
+        "--illumination", default="600", help="illumination (image) to fit (default: 600)"
+    )
+    parser.add_argument(
+        "--mask",
+        type=Path,
+        default=None,
+        help="mask image (PNG/TIFF/.npy, same size as the raw image; non-zero = uniform region)",
+    )
+    parser.add_argument("--max-degree", type=int, default=5, help="highest degree (default 5)")
+    parser.add_argument("--out", type=Path, required=True, help="model YAML to write")
+    parser.set_defaults(handler=_vignetting)
+
+
+def _register_dispersion(actions: argparse._SubParsersAction) -> None:
+    parser = actions.add_parser(
+        "dispersion",
+        help="lateral chromatic aberration model (thesis §3.2, Algorithms 1–2)",
+        description="Find keypoints (disk centres or patch-wise registration) in the HDR "
+        "images of one scene and fit a dispersion model: a trivariate model in (x, y, λ) "
+        "between filter bands, or with --reference G bivariate models of the Red and Blue "
+        "channels relative to Green in the unfiltered image. Keypoints are labelled with "
+        "each band's effective wavelength (filter × light × camera, from the rig) and bands "
+        "dominated by out-of-band leakage are left out. Writes MODEL.yaml, "
+        "MODEL.keypoints.csv, MODEL.png (dispersion per band like the thesis' Figure 5.3) "
+        "and MODEL.residuals.png.",
+    )
+    parser.add_argument("hdr", type=Path, help="HDR folder from `labkit hdr`")
+    parser.add_argument("--scene", default="disks", help="scene to use (default: disks)")
+    parser.add_argument(
+        "--reference",
+        default="600",
+        help="reference band: illumination name or nominal wavelength (nm), or G for a "
+        "colour-channel model (default: 600)",
+    )
+    parser.add_argument("--model", choices=["polynomial", "spline"], default="polynomial")
+    parser.add_argument("--keypoints", choices=["disks", "registration"], default="disks")
+    parser.add_argument(
+        "--direction",
+        choices=["from_reference", "to_reference"],
+        default="from_reference",
+        help="from_reference maps reference positions to band positions (warping); "
+        "to_reference maps band positions back (image formation); default from_reference",
+    )
+    parser.add_argument(
+        "--wavelengths",
+        choices=["effective", "nominal"],
+        default="effective",
+        help="label bands by their effective wavelength (needs the rig) or by the filters' "
+        "nominal centres (default: effective)",
+    )
+    parser.add_argument(
+        "--rig",
+        type=Path,
+        default=None,
+        help="rig YAML for effective wavelengths (default: the rig of the session the HDR "
+        "images were merged from)",
+    )
+    parser.add_argument(
+        "--min-purity",
+        type=float,
+        default=0.9,
+        help="leave out bands with less in-band signal than this fraction (default 0.9)",
+    )
+    parser.add_argument(
+        "--vignetting",
+        choices=["none", "auto"],
+        default="none",
+        help="auto: correct each image for vignetting before finding keypoints",
+    )
+    parser.add_argument("--workers", type=int, default=None, help="processes for disk fits")
+    parser.add_argument("--seed", type=int, default=2019, help="cross-validation seed")
+    parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    parser.add_argument("--out", type=Path, required=True, help="model YAML to write")
+    parser.set_defaults(handler=_dispersion)
 
 
 def _sensitivity(args: argparse.Namespace) -> int:
@@ -111,3 +207,134 @@ def _number(value: float) -> str:
 
 def _percent(value: float) -> str:
     return f"{'—':>8}" if not math.isfinite(value) else f"{value:>+7.1f}%"
+
+
+def _vignetting(args: argparse.Namespace) -> int:
+    from calibration.disks import background_mask
+    from calibration.vignetting import fit_vignetting
+
+    from calibration._hdr_inputs import load_scene_hdr, source_of
+    from calibration.plots import plot_vignetting
+    from labkit.errors import DataError
+
+    images = {image.illumination: image for image in load_scene_hdr(args.hdr, args.scene)}
+    if args.illumination not in images:
+        raise DataError(
+            f"scene {args.scene!r} in {args.hdr} has no {args.illumination!r} image; "
+            f"available: {sorted(images)}"
+        )
+    image = images[args.illumination]
+    name = source_of(image)
+    if args.mask is not None:
+        mask, origin = read_mask(args.mask), f"mask {args.mask}"
+    else:
+        try:
+            mask, origin = background_mask(image.raw, cfa=image.cfa), "disk-pattern background"
+        except DataError:
+            mask, origin = None, "whole image"
+    model = fit_vignetting(
+        image.raw, cfa=image.cfa, mask=mask, max_degree=args.max_degree, name=name
+    )
+    model.save(args.out)
+    plot = args.out.with_suffix(".png")
+    plot_vignetting(model, plot)
+    print(f"{name}: fitted on the {origin}; degree {model.degree} by 10-fold cross-validation")
+    print(f"wrote {args.out} and {plot}")
+    return 0
+
+
+def read_mask(path: Path):
+    """A boolean mask from a PNG/TIFF/.npy file (non-zero = True)."""
+    import numpy as np
+
+    from labkit.errors import DataError
+
+    if not path.is_file():
+        raise DataError(f"mask {path} does not exist")
+    try:
+        if path.suffix.lower() == ".npy":
+            data = np.load(path)
+        elif path.suffix.lower() in (".tif", ".tiff"):
+            import tifffile
+
+            data = tifffile.imread(path)
+        else:
+            import matplotlib.image
+
+            data = matplotlib.image.imread(path)
+    except Exception as error:
+        raise DataError(f"cannot read mask {path}: {error}") from None
+    data = np.asarray(data)
+    if data.ndim == 3:
+        data = data[..., :3].max(axis=2)
+    if data.ndim != 2:
+        raise DataError(f"mask {path} must be a 2-D image, got shape {data.shape}")
+    return data != 0
+
+
+def _dispersion(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from calibration._hdr_inputs import load_scene_hdr
+    from calibration.dispersion_calibration import band_table, calibrate_dispersion, summary
+    from calibration.plots import plot_keypoint_residuals, plot_model
+
+    images = load_scene_hdr(args.hdr, args.scene)
+    colour = args.reference.upper() in ("R", "G", "B")
+    bands = None
+    if not colour and args.wavelengths == "effective":
+        bands = _rig_bands(args.rig, images)
+    result = calibrate_dispersion(
+        images,
+        reference=args.reference,
+        model=args.model,
+        keypoints=args.keypoints,
+        direction=args.direction,
+        bands=bands,
+        min_purity=args.min_purity,
+        vignetting=args.vignetting,
+        rng=np.random.default_rng(args.seed),
+        workers=args.workers,
+        progress=lambda message: print(message, flush=True),
+    )
+    print(band_table(result))
+    for warning in result.warnings:
+        print(f"warning: {warning}")
+    result.model.save(args.out)
+    written = [args.out]
+    written.append(result.keypoints.to_csv(args.out.with_suffix(".keypoints.csv")))
+    if not args.no_plots:
+        written.append(plot_model(result.model, args.out.with_suffix(".png")))
+        written.append(
+            plot_keypoint_residuals(
+                result.model, result.keypoints, args.out.with_suffix(".residuals.png")
+            )
+        )
+    print(f"{len(result.keypoints)} keypoints; model: " + ", ".join(
+        f"{key} {value:.3g}" if isinstance(value, float) else f"{key} {value}"
+        for key, value in summary(result).items()
+    ))  # fmt: skip
+    print("wrote " + ", ".join(str(path) for path in written))
+    return 0
+
+
+def _rig_bands(rig_path: Path | None, images) -> dict:
+    """Effective band wavelengths from --rig or from the session the images came from."""
+    from calibration.bands import filter_bands
+    from labkit.errors import DataError
+    from labkit.rig import load_rig
+    from labkit.session import Session
+
+    if rig_path is not None:
+        return filter_bands(load_rig(rig_path))
+    sessions = {image.labkit.get("session") for image in images} - {None}
+    for session in sorted(sessions):
+        try:
+            return filter_bands(Session.open(session).rig)
+        except DataError:
+            continue
+    raise DataError(
+        "effective band wavelengths need the rig, but the HDR images name no readable session "
+        f"({', '.join(sorted(sessions)) or 'none recorded'}); pass --rig RIG.yaml or "
+        "--wavelengths nominal"
+    )

@@ -8,6 +8,7 @@ from labkit.io.exr import (
     read_raw_exr,
     read_spectral_exr,
     write_raw_exr,
+    write_rgb_exr,
     write_spectral_exr,
 )
 from labkit.io.preview import demosaic_bilinear, raw_preview, to_display, write_png
@@ -30,6 +31,7 @@ __all__ = [
     "write_png",
     "write_raw_exr",
     "write_raw_tiff",
+    "write_rgb_exr",
     "write_spectral_exr",
     "write_text_atomic",
 ]

@@ -166,6 +166,23 @@ def write_spectral_exr(path: str | Path, image: SpectralImage) -> None:
     _write(path, header, channels)
 
 
+def write_rgb_exr(path: str | Path, rgb: np.ndarray, labkit: dict[str, Any] | None = None) -> None:
+    """Write a linear (rows, cols, 3) image as an RGB OpenEXR (channels R, G, B), atomically."""
+    rgb = np.asarray(rgb)
+    if rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise DataError(f"{path}: an RGB image must be (rows, cols, 3), got {rgb.shape}")
+    import OpenEXR
+
+    channels = {name: _checked_plane(path, name, rgb[:, :, i]) for i, name in enumerate("RGB")}
+    provenance = {"format": FORMAT_VERSION, "kind": "rgb", **(labkit or {})}
+    header = {
+        "compression": OpenEXR.ZIP_COMPRESSION,
+        "type": OpenEXR.scanlineimage,
+        "labkit": json.dumps(provenance, default=json_default),
+    }
+    _write(path, header, channels)
+
+
 def read_spectral_exr(path: str | Path) -> SpectralImage:
     """Read a spectral EXR written by :func:`write_spectral_exr`."""
     header, channels = _read(path)

@@ -166,6 +166,26 @@ class Lens:
         s = self.spectral_factor(wavelength_nm)
         return ux * s, uy * s
 
+    def relative_displacement(
+        self,
+        x: np.ndarray,
+        y: np.ndarray,
+        wavelength_nm: np.ndarray | float,
+        *,
+        reference_nm: float,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """True dispersion between the images at `reference_nm` and `wavelength_nm`, px.
+
+        A point imaged at (x, y) at `reference_nm` is imaged at (x + dx, y + dy) at
+        `wavelength_nm` (``from_reference``): what a calibration against a reference
+        band other than the lens' own reference wavelength should find.
+        """
+        s_ref = float(self.spectral_factor(reference_nm))
+        qx, qy = self.to_reference(x, y, s_ref) if s_ref != 0 else (x, y)
+        ux, uy = self.radial_field(qx, qy)
+        s = self.spectral_factor(wavelength_nm)
+        return qx + ux * s - x, qy + uy * s - y
+
     def to_reference(
         self, x: np.ndarray, y: np.ndarray, s: float, *, iterations: int = 3
     ) -> tuple[np.ndarray, np.ndarray]:

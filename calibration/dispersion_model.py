@@ -1,0 +1,423 @@
+"""Dispersion models: what a calibration produces and reconstruction consumes (thesis §3.2.4).
+
+A :class:`DispersionModel` maps image positions (and, for spectral models, wavelengths)
+to displacement vectors in pixels. It is made of one :class:`DisplacementField` per
+band label — ``"spectral"`` for a trivariate model in (x, y, λ), or one per colour
+channel (``"R"``, ``"B"``) for bivariate models relative to Green — plus what every model
+shares: its direction, its reference, the image size and the calibrated region.
+
+Directions (thesis §3.2.4, last paragraph):
+
+``from_reference``
+    input = position p in the reference image, output = d such that the feature is
+    imaged at p + d in the band. Used to correct images by warping.
+``to_reference``
+    input = position q in the band image, output = e such that the feature is at
+    q + e in the reference image. Used in image formation (reconstruction).
+
+The YAML file (``format: 1``) is documented in the README; :func:`load_dispersion_model`
+reads it back and validates every field, naming the file and key of any problem.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, Protocol
+
+import numpy as np
+import yaml
+
+from labkit.errors import ConfigError, DataError
+from labkit.io import write_text_atomic
+
+FORMAT = 1
+KIND = "labkit.dispersion_model"
+#: Points evaluated per chunk by :meth:`DispersionModel.displacement` (bounds memory).
+CHUNK_POINTS = 1 << 20
+
+Direction = Literal["from_reference", "to_reference"]
+Variables = Literal["xy", "xylambda"]
+SPECTRAL = "spectral"
+
+
+class DisplacementField(Protocol):
+    """One smooth vector field: normalised inputs → displacement in px."""
+
+    #: ``"polynomial"`` or ``"spline"``.
+    kind: str
+
+    def evaluate(self, points: np.ndarray) -> np.ndarray:
+        """Displacements (n, 2) in px at `points` (n, 2) = (x, y) or (n, 3) = (x, y, λ nm)."""
+        ...
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain-YAML representation (floats and lists only)."""
+        ...
+
+
+#: Field readers by kind; :mod:`calibration.polynomial` and :mod:`calibration.spline`
+#: register theirs with :func:`register_field`.
+FIELD_READERS: dict[str, Callable[[Mapping[str, Any], str], DisplacementField]] = {}
+
+
+def register_field(kind: str):
+    """Class decorator: register ``cls.from_dict(data, where)`` as the reader of `kind`."""
+
+    def decorate(cls):
+        FIELD_READERS[kind] = cls.from_dict
+        return cls
+
+    return decorate
+
+
+@dataclass(frozen=True)
+class CalibratedRegion:
+    """Where a model is backed by keypoints: their convex hull and wavelength range.
+
+    Attributes
+    ----------
+    hull_xy : ndarray (k, 2)
+        Convex hull vertices (x, y) of the model's input positions, counter-clockwise, px.
+    wavelength_nm : (min, max) or None
+        Band wavelengths covered (spectral models), nm.
+    """
+
+    hull_xy: np.ndarray
+    wavelength_nm: tuple[float, float] | None = None
+
+    @classmethod
+    def from_points(
+        cls, x: np.ndarray, y: np.ndarray, wavelength_nm: np.ndarray | None = None
+    ) -> CalibratedRegion:
+        """The region spanned by keypoint positions (and wavelengths)."""
+        points = np.column_stack([np.ravel(x), np.ravel(y)]).astype(np.float64)
+        hull = _convex_hull(points)
+        span = None
+        if wavelength_nm is not None and np.size(wavelength_nm):
+            span = (float(np.min(wavelength_nm)), float(np.max(wavelength_nm)))
+        return cls(hull, span)
+
+    def contains(
+        self, x: np.ndarray, y: np.ndarray, wavelength_nm: np.ndarray | float | None = None
+    ) -> np.ndarray:
+        """Boolean mask: positions inside the hull (and wavelengths inside the range)."""
+        x = np.asarray(x, dtype=np.float64)
+        y = np.asarray(y, dtype=np.float64)
+        inside = np.ones(np.broadcast_shapes(x.shape, y.shape), dtype=bool)
+        hull = self.hull_xy
+        if len(hull) >= 3:
+            for (x0, y0), (x1, y1) in zip(hull, np.roll(hull, -1, axis=0), strict=True):
+                inside &= (x1 - x0) * (y - y0) - (y1 - y0) * (x - x0) >= -1e-9
+        if wavelength_nm is not None and self.wavelength_nm is not None:
+            lo, hi = self.wavelength_nm
+            w = np.asarray(wavelength_nm, dtype=np.float64)
+            inside = inside & (w >= lo - 1e-9) & (w <= hi + 1e-9)
+        return inside
+
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"hull_xy": self.hull_xy.tolist()}
+        if self.wavelength_nm is not None:
+            out["wavelength_nm"] = list(self.wavelength_nm)
+        return out
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any], where: str) -> CalibratedRegion:
+        hull = _float_array(data.get("hull_xy"), f"{where}.hull_xy")
+        if hull.ndim != 2 or hull.shape[1] != 2:
+            raise ConfigError(f"{where}.hull_xy must be a list of [x, y] pairs")
+        span = data.get("wavelength_nm")
+        if span is not None:
+            span_arr = _float_array(span, f"{where}.wavelength_nm")
+            if span_arr.shape != (2,):
+                raise ConfigError(f"{where}.wavelength_nm must be [min, max]")
+            span = (float(span_arr[0]), float(span_arr[1]))
+        return cls(hull, span)
+
+
+def _convex_hull(points: np.ndarray) -> np.ndarray:
+    """Counter-clockwise convex hull (Andrew's monotone chain) of (n, 2) points."""
+    unique = np.unique(points, axis=0)
+    if len(unique) < 3:
+        return unique
+
+    def cross(o: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+        return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
+
+    def chain(pts: np.ndarray) -> list[np.ndarray]:
+        out: list[np.ndarray] = []
+        for p in pts:
+            while len(out) >= 2 and cross(out[-2], out[-1], p) <= 0:
+                out.pop()
+            out.append(p)
+        return out
+
+    lower, upper = chain(unique), chain(unique[::-1])
+    return np.array(lower[:-1] + upper[:-1])
+
+
+@dataclass(frozen=True)
+class DispersionModel:
+    """A calibrated model of lateral chromatic aberration.
+
+    Attributes
+    ----------
+    type : {"polynomial", "spline"}
+    variables : {"xy", "xylambda"}
+        Colour-channel (bivariate, one field per channel) or spectral (trivariate).
+    direction : {"from_reference", "to_reference"}
+    reference : float or str
+        Reference wavelength (nm) or channel.
+    image_shape : (rows, cols)
+    fields : dict of str to DisplacementField
+        ``{"spectral": field}`` or ``{"R": field, "B": field}``.
+    region : CalibratedRegion
+    selection : dict
+        Model selection report (degrees, CV/GCV errors, condition numbers, smoothing).
+    provenance : dict
+        Keypoint source, input files, software version, band wavelengths.
+    """
+
+    type: str
+    variables: Variables
+    direction: Direction
+    reference: float | str
+    image_shape: tuple[int, int]
+    fields: dict[str, DisplacementField]
+    region: CalibratedRegion
+    selection: dict[str, Any] = field(default_factory=dict)
+    provenance: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.variables not in ("xy", "xylambda"):
+            raise ConfigError(f"variables must be xy or xylambda, not {self.variables!r}")
+        if self.direction not in ("from_reference", "to_reference"):
+            raise ConfigError(
+                f"direction must be from_reference or to_reference, not {self.direction!r}"
+            )
+        if self.variables == "xylambda" and set(self.fields) != {SPECTRAL}:
+            raise ConfigError(f"a spectral model has one field named {SPECTRAL!r}")
+        if not self.fields:
+            raise ConfigError("a dispersion model needs at least one field")
+
+    @property
+    def channels(self) -> list[str]:
+        """Channels with a field (colour-channel models); empty for spectral models."""
+        return [] if self.variables == "xylambda" else sorted(self.fields)
+
+    def displacement(
+        self,
+        x: np.ndarray | float,
+        y: np.ndarray | float,
+        wavelength_nm: np.ndarray | float | None = None,
+        *,
+        channel: str | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Displacement (dx, dy) in px at positions (x, y) px, broadcast over all inputs.
+
+        Parameters
+        ----------
+        x, y : array_like
+            Column and row, px (pixel centres at integers). For ``from_reference``
+            models a reference-image position, for ``to_reference`` a band position.
+        wavelength_nm : array_like, optional
+            Band wavelength, nm (spectral models; required there).
+        channel : str, optional
+            ``"R"`` / ``"B"`` (colour-channel models; the reference channel gives 0).
+
+        Returns
+        -------
+        dx, dy : ndarray, float64, the broadcast shape of the inputs.
+        """
+        if self.variables == "xylambda":
+            if wavelength_nm is None:
+                raise DataError("this spectral dispersion model needs wavelength_nm")
+            if channel is not None:
+                raise DataError("channel= applies to colour-channel models, not spectral ones")
+            arrays = np.broadcast_arrays(
+                np.asarray(x, np.float64),
+                np.asarray(y, np.float64),
+                np.asarray(wavelength_nm, np.float64),
+            )
+            fld = self.fields[SPECTRAL]
+        else:
+            if wavelength_nm is not None:
+                raise DataError(
+                    "this colour-channel dispersion model takes channel=, not wavelength_nm; "
+                    f"channels: {', '.join(self.channels)}"
+                )
+            arrays = np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(y, np.float64))
+            if channel == self.reference:
+                zero = np.zeros(arrays[0].shape)
+                return zero, zero.copy()
+            if channel not in self.fields:
+                raise DataError(
+                    f"channel {channel!r} not in this model; use one of "
+                    f"{', '.join([str(self.reference), *self.channels])}"
+                )
+            fld = self.fields[channel]
+        shape = arrays[0].shape
+        points = np.column_stack([a.ravel() for a in arrays])
+        if not np.all(np.isfinite(points)):
+            raise DataError("dispersion model inputs hold NaN or Inf")
+        out = np.empty((points.shape[0], 2))
+        for start in range(0, points.shape[0], CHUNK_POINTS):
+            out[start : start + CHUNK_POINTS] = fld.evaluate(points[start : start + CHUNK_POINTS])
+        return out[:, 0].reshape(shape), out[:, 1].reshape(shape)
+
+    # -- files ----------------------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        """The YAML document (plain types only)."""
+        reference = self.reference if isinstance(self.reference, str) else float(self.reference)
+        return {
+            "format": FORMAT,
+            "kind": KIND,
+            "type": self.type,
+            "variables": self.variables,
+            "direction": self.direction,
+            "reference": reference,
+            "image_shape": [int(self.image_shape[0]), int(self.image_shape[1])],
+            "region": self.region.to_dict(),
+            "fields": {name: f.to_dict() for name, f in sorted(self.fields.items())},
+            "selection": _plain(self.selection),
+            "provenance": _plain(self.provenance),
+        }
+
+    def save(self, path: str | Path) -> Path:
+        """Write the model as YAML, atomically; returns the path."""
+        text = yaml.safe_dump(self.to_dict(), sort_keys=False, width=120)
+        write_text_atomic(path, text)
+        return Path(path)
+
+    @classmethod
+    def from_dict(cls, data: Any, *, source: str = "<model>") -> DispersionModel:
+        """Validate and build a model from its YAML document."""
+        if not isinstance(data, Mapping):
+            raise ConfigError(f"{source}: a dispersion model file must be a YAML mapping")
+        if data.get("kind") != KIND:
+            raise ConfigError(
+                f"{source}: `kind` is {data.get('kind')!r}, expected {KIND!r}; "
+                "is this a dispersion model written by `labkit calibrate dispersion`?"
+            )
+        if data.get("format") != FORMAT:
+            raise ConfigError(
+                f"{source}: `format` {data.get('format')!r} is not supported (expected {FORMAT})"
+            )
+        for key in (
+            "type",
+            "variables",
+            "direction",
+            "reference",
+            "image_shape",
+            "region",
+            "fields",
+        ):
+            if key not in data:
+                raise ConfigError(f"{source}: missing key `{key}`")
+        fields_data = data["fields"]
+        if not isinstance(fields_data, Mapping) or not fields_data:
+            raise ConfigError(f"{source}: `fields` must be a non-empty mapping")
+        fields: dict[str, DisplacementField] = {}
+        for name, fdata in fields_data.items():
+            where = f"{source}: fields.{name}"
+            if not isinstance(fdata, Mapping):
+                raise ConfigError(f"{where} must be a mapping")
+            kind = fdata.get("kind", data["type"])
+            reader = FIELD_READERS.get(kind)
+            if reader is None:
+                raise ConfigError(
+                    f"{where}: unknown field kind {kind!r}; known: {', '.join(FIELD_READERS)}"
+                )
+            fields[str(name)] = reader(fdata, where)
+        shape = data["image_shape"]
+        if (
+            not isinstance(shape, list)
+            or len(shape) != 2
+            or not all(isinstance(v, int) and v > 0 for v in shape)
+        ):
+            raise ConfigError(f"{source}: image_shape must be [rows, cols], got {shape!r}")
+        reference = data["reference"]
+        if data["variables"] == "xylambda":
+            if not isinstance(reference, int | float):
+                raise ConfigError(f"{source}: a spectral model's reference must be a wavelength")
+            reference = float(reference)
+        try:
+            return cls(
+                type=str(data["type"]),
+                variables=data["variables"],
+                direction=data["direction"],
+                reference=reference,
+                image_shape=(shape[0], shape[1]),
+                fields=fields,
+                region=CalibratedRegion.from_dict(data["region"], f"{source}: region"),
+                selection=dict(data.get("selection") or {}),
+                provenance=dict(data.get("provenance") or {}),
+            )
+        except ConfigError as exc:
+            raise ConfigError(f"{source}: {exc}") from None
+
+
+def load_dispersion_model(path: str | Path) -> DispersionModel:
+    """Read a dispersion model YAML file (see the README for its format).
+
+    Raises
+    ------
+    ConfigError
+        The file is missing, is not YAML, or any key is invalid (the message names it).
+    """
+    # the field readers register themselves on import
+    import calibration.polynomial
+    import calibration.spline  # noqa: F401
+
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(
+            f"dispersion model {path} does not exist; create one with "
+            "`labkit calibrate dispersion HDR_DIR --out MODEL.yaml`"
+        )
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path} is not valid YAML: {exc}") from None
+    return DispersionModel.from_dict(data, source=str(path))
+
+
+def _float_array(value: Any, where: str) -> np.ndarray:
+    """A finite float array from YAML lists, or a ConfigError naming `where`."""
+    try:
+        array = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{where} must hold numbers") from None
+    if array.size == 0 or not np.all(np.isfinite(array)):
+        raise ConfigError(f"{where} must be a non-empty list of finite numbers")
+    return array
+
+
+def float_array(
+    value: Any, where: str, *, shape: tuple[int | None, ...] | None = None
+) -> np.ndarray:
+    """Validated float array for field readers: finite, and of `shape` (None = any size)."""
+    array = _float_array(value, where)
+    if shape is not None and (
+        array.ndim != len(shape)
+        or any(s is not None and s != a for s, a in zip(shape, array.shape, strict=True))
+    ):
+        want = " × ".join("n" if s is None else str(s) for s in shape)
+        raise ConfigError(f"{where} must be an array of shape {want}, got {array.shape}")
+    return array
+
+
+def _plain(value: Any) -> Any:
+    """Numpy scalars/arrays → plain Python for YAML."""
+    if isinstance(value, Mapping):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _plain(value.tolist())
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Path):
+        return str(value)
+    return value

@@ -1,0 +1,574 @@
+"""Polynomial models of dispersion, degrees chosen by cross-validation (thesis §3.2.4).
+
+Spectral keypoints (between filter bands) get one **trivariate** polynomial in (x, y, λ):
+total degree ≤ d_xy in (x, y) times degree ≤ d_λ in λ, fitted to all bands at once.
+Colour-channel keypoints get one **bivariate** polynomial in (x, y) per channel (R and
+B relative to G), after Rudakova and Monasse.
+
+Both fit the x and y components of the displacement as two columns of one least-squares
+problem, in normalised coordinates (:mod:`calibration._normalise`: whitened (x, y),
+z-scored λ, jointly normalised displacements) and on a Legendre basis of those
+coordinates (:mod:`calibration._polybasis`, the same polynomial space as monomials).
+
+Degree selection
+----------------
+Errors are **mean squared Euclidean prediction errors in px²**: the mean over the
+validation keypoints of (dx − d̂x)² + (dy − d̂y)².
+
+*Spectral* — thesis Algorithm 1. For each candidate (d_xy, d_λ) ∈ {0…max_degree_xy} ×
+{0…N_λ − 2}: for each validation band i = 2…N_λ − 1 (in wavelength order: never the
+shortest or the longest), the band's keypoints V_i plus one of 10 random tenths of the
+other keypoints form the validation set, the remaining nine tenths the training set;
+e_db and s_db are the sample mean and sample standard deviation of the 10 (N_λ − 2)
+errors. With e_min the smallest e_db and s the s_db there, d_λ is the smallest b with
+some e_db − e_min ≤ s, then d_xy the smallest d with e_db − e_min ≤ s at that b. (This
+"one-standard-error" rule uses the standard deviation of the fold errors, as the thesis'
+Algorithm 1 does, not the standard error of their mean: it is deliberately conservative.)
+The tenths are drawn independently for each validation band.
+
+*Colour channels* — per channel, 10-fold cross-validation over degrees 0…max_degree_xy
+(thesis: "tenfold cross-validation, as done for vignetting correction"), and the same
+one-standard-error rule: the smallest degree whose mean error is within one sample
+standard deviation (of the 10 fold errors) of the minimum.
+
+Candidates whose training design matrix has more columns than rows, or a condition
+number above `max_condition`, are skipped and listed in the model's selection report.
+The normalisation is fitted once, to all keypoints: it only reparametrises the same
+polynomial space, so it does not change what a fold's training data determine.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+
+from calibration import _polybasis as pb
+from calibration._normalise import Normaliser
+from calibration.dispersion_model import (
+    SPECTRAL,
+    CalibratedRegion,
+    DispersionModel,
+    float_array,
+    register_field,
+)
+from calibration.keypoints import DispersionKeypoints
+from labkit.errors import ConfigError, DataError
+
+#: Largest spatial degree the thesis considers.
+MAX_DEGREE_XY = 12
+#: Fewest keypoints a band or channel must have (a plane through them needs three).
+MIN_KEYPOINTS = 3
+
+Progress = Callable[[int, int, str], None]
+
+
+@register_field("polynomial")
+@dataclass(frozen=True, eq=False)
+class PolynomialField:
+    """A polynomial displacement field in normalised coordinates.
+
+    ``d(p) = restore(Σ_m c_m · Π_v P_{e_mv}(t_v))`` where ``t = domain(normaliser.inputs(p))``
+    and P_n is the Legendre polynomial of degree n.
+
+    Attributes
+    ----------
+    normaliser : Normaliser
+        Input (x, y[, λ]) and output (dx, dy) normalisation.
+    domain : Domain
+        Affine map of normalised inputs onto [−1, 1] (the keypoints' range).
+    exponents : ndarray (m, 2 | 3) int
+        Legendre degrees (i, j[, k]) of each term.
+    coefficients : ndarray (m, 2)
+        Coefficients of the normalised dx and dy.
+    """
+
+    normaliser: Normaliser
+    domain: pb.Domain
+    exponents: np.ndarray
+    coefficients: np.ndarray
+
+    kind: ClassVar[str] = "polynomial"
+    basis: ClassVar[str] = "legendre"
+
+    def __post_init__(self) -> None:
+        exps = np.asarray(self.exponents, dtype=np.int64)
+        coef = np.asarray(self.coefficients, dtype=np.float64)
+        k = self.normaliser.n_inputs
+        if exps.ndim != 2 or exps.shape[1] != k or coef.shape != (exps.shape[0], 2):
+            raise DataError(
+                f"polynomial field: exponents {exps.shape} and coefficients {coef.shape} "
+                f"do not match a field of {k} inputs"
+            )
+        if np.shape(self.domain.centre) != (k,) or np.shape(self.domain.half_width) != (k,):
+            raise DataError(f"polynomial field: the domain must have {k} coordinates")
+        object.__setattr__(self, "exponents", exps)
+        object.__setattr__(self, "coefficients", coef)
+        # evaluation plan: distinct (i, j) pairs × λ degrees → coefficient tensor
+        pairs, pair_index = np.unique(exps[:, :2], axis=0, return_inverse=True)
+        n_lambda = int(exps[:, 2].max()) + 1 if k == 3 else 1
+        tensor = np.zeros((len(pairs), n_lambda, 2))
+        tensor[pair_index.ravel(), exps[:, 2] if k == 3 else 0] = coef
+        object.__setattr__(self, "_pairs", pairs)
+        object.__setattr__(self, "_tensor", tensor)
+
+    @property
+    def degree_xy(self) -> int:
+        """Total degree in (x, y)."""
+        return int((self.exponents[:, 0] + self.exponents[:, 1]).max())
+
+    @property
+    def degree_lambda(self) -> int | None:
+        """Degree in λ (None for a bivariate field)."""
+        return int(self.exponents[:, 2].max()) if self.normaliser.n_inputs == 3 else None
+
+    def evaluate(self, points: np.ndarray) -> np.ndarray:
+        """Displacements (n, 2) px at `points` (n, 2) = (x, y) px or (n, 3) = (x, y, λ nm)."""
+        points = np.asarray(points)
+        k = self.normaliser.n_inputs
+        if points.ndim != 2 or points.shape[1] != k:
+            raise DataError(
+                f"this polynomial field takes points of shape (n, {k}), got {points.shape}"
+            )
+        pairs, tensor = self._pairs, self._tensor  # type: ignore[attr-defined]
+        n_lambda = tensor.shape[1]
+        max_i, max_j = int(pairs[:, 0].max()), int(pairs[:, 1].max())
+        out = np.empty((len(points), 2))
+        # Elementwise accumulation, no BLAS: as fast as a matrix product for these few
+        # terms, and immune to BLAS thread contention (callers may run many in parallel).
+        for start in range(0, len(points), pb.CHUNK_ROWS):
+            t = self.domain(self.normaliser.inputs(points[start : start + pb.CHUNK_ROWS]))
+            px = pb.legendre_table(t[:, 0], max_i)
+            py = pb.legendre_table(t[:, 1], max_j)
+            pl = pb.legendre_table(t[:, 2], n_lambda - 1) if k == 3 else None
+            acc = np.zeros((2, len(t)))
+            for (i, j), coef in zip(pairs, tensor, strict=True):  # coef: (n_lambda, 2)
+                v = px[i] * py[j]
+                if pl is None:
+                    acc += coef[0][:, None] * v
+                else:
+                    spectral = coef[0][:, None] * pl[0]
+                    for b in range(1, n_lambda):
+                        spectral += coef[b][:, None] * pl[b]
+                    acc += spectral * v
+            out[start : start + pb.CHUNK_ROWS] = self.normaliser.restore(acc.T)
+        return out
+
+    # -- files ----------------------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "kind": self.kind,
+            "basis": self.basis,
+            "degree_xy": self.degree_xy,
+            "degree_lambda": self.degree_lambda,
+            "normaliser": self.normaliser.to_dict(),
+            "domain": self.domain.to_dict(),
+            "exponents": self.exponents.tolist(),
+            "coefficients": self.coefficients.tolist(),
+        }
+
+    @classmethod
+    def from_dict(cls, data: Any, where: str) -> PolynomialField:
+        """Read back :meth:`to_dict`, validating every key; errors name `where`.key."""
+        if not isinstance(data, Mapping):
+            raise ConfigError(f"{where} must be a mapping")
+        for key in (
+            "basis",
+            "degree_xy",
+            "degree_lambda",
+            "normaliser",
+            "domain",
+            "exponents",
+            "coefficients",
+        ):
+            if key not in data:
+                raise ConfigError(f"{where}.{key} is missing")
+        if data.get("kind", "polynomial") != "polynomial":
+            raise ConfigError(f"{where}.kind is {data.get('kind')!r}, expected 'polynomial'")
+        if data["basis"] != cls.basis:
+            raise ConfigError(f"{where}.basis is {data['basis']!r}; this labkit reads 'legendre'")
+        normaliser = Normaliser.from_dict(data["normaliser"], f"{where}.normaliser")
+        k = normaliser.n_inputs
+        domain_data = data["domain"]
+        if not isinstance(domain_data, Mapping):
+            raise ConfigError(f"{where}.domain must be a mapping with centre and half_width")
+        centre = float_array(domain_data.get("centre"), f"{where}.domain.centre", shape=(k,))
+        half = float_array(domain_data.get("half_width"), f"{where}.domain.half_width", shape=(k,))
+        if np.any(half <= 0):
+            raise ConfigError(f"{where}.domain.half_width must be positive")
+        exps = _exponents(data["exponents"], f"{where}.exponents", k)
+        coef = float_array(data["coefficients"], f"{where}.coefficients", shape=(len(exps), 2))
+        for key, value, want in (
+            ("degree_xy", data["degree_xy"], int((exps[:, 0] + exps[:, 1]).max())),
+            ("degree_lambda", data["degree_lambda"], int(exps[:, 2].max()) if k == 3 else None),
+        ):
+            if value != want or isinstance(value, bool):
+                raise ConfigError(f"{where}.{key} is {value!r} but the exponents give {want!r}")
+        return cls(normaliser, pb.Domain(centre, half), exps, coef)
+
+
+def _exponents(value: Any, where: str, k: int) -> np.ndarray:
+    """Validated exponent table: distinct rows of `k` non-negative integers."""
+    try:
+        exps = np.asarray(value)
+    except (TypeError, ValueError):
+        raise ConfigError(
+            f"{where} must be a list of [i, j{', k' if k == 3 else ''}] rows"
+        ) from None
+    if exps.ndim != 2 or exps.shape[1] != k or exps.shape[0] == 0:
+        raise ConfigError(
+            f"{where} must be a non-empty list of rows of {k} integers, got shape {exps.shape}"
+        )
+    if exps.dtype.kind not in "iu" or np.any(exps < 0):
+        raise ConfigError(f"{where} must hold non-negative integers")
+    if len(np.unique(exps, axis=0)) != len(exps):
+        raise ConfigError(f"{where} has repeated rows")
+    return exps.astype(np.int64)
+
+
+# -- fitting ------------------------------------------------------------------------------
+@dataclass
+class _Fit:
+    """One fitted field and its selection report."""
+
+    field: PolynomialField
+    report: dict[str, Any]
+
+
+def fit_polynomial_model(
+    keypoints: DispersionKeypoints,
+    *,
+    direction: str = "from_reference",
+    max_degree_xy: int = MAX_DEGREE_XY,
+    max_degree_lambda: int | None = None,
+    folds: int = 10,
+    rng: np.random.Generator | None = None,
+    max_condition: float = pb.MAX_CONDITION,
+    progress: Progress | None = None,
+) -> DispersionModel:
+    """Fit a polynomial dispersion model, choosing its degrees by cross-validation.
+
+    Parameters
+    ----------
+    keypoints : DispersionKeypoints
+        Spectral keypoints (≥ 3 bands; the reference band's zero displacements are data
+        like any other band) or colour-channel keypoints (one field per channel; keypoints
+        of the reference channel itself, if any, are ignored).
+    direction : {"from_reference", "to_reference"}
+        ``to_reference`` fits ``keypoints.swapped()``: band positions → displacement back
+        to the reference image.
+    max_degree_xy : int
+        Largest total degree in (x, y) tried (thesis: 12).
+    max_degree_lambda : int, optional
+        Largest degree in λ tried; default and upper limit N_λ − 2.
+    folds : int
+        Random folds per validation band (spectral) or per channel (thesis: 10).
+    rng : numpy.random.Generator, optional
+        Source of the random folds; default ``numpy.random.default_rng(0)`` (reproducible).
+    max_condition : float
+        Candidates whose design matrix has a larger 2-norm condition number are skipped;
+        the final model's must be below it.
+    progress : callable(done, total, message), optional
+        Called after each cross-validation split.
+
+    Returns
+    -------
+    DispersionModel
+        ``type="polynomial"``; ``selection`` holds the CV error tables (px², mean squared
+        Euclidean error, ``None`` where skipped), their standard deviations, the chosen
+        degrees, the final design matrix's condition number and the skipped candidates.
+
+    Raises
+    ------
+    DataError
+        Fewer than 3 bands for a spectral model, a band or channel with too few keypoints,
+        or no candidate model possible.
+    ConfigError
+        Invalid direction, degrees or folds.
+    """
+    if direction not in ("from_reference", "to_reference"):
+        raise ConfigError(f"direction must be from_reference or to_reference, not {direction!r}")
+    if (
+        isinstance(max_degree_xy, bool)
+        or not isinstance(max_degree_xy, int | np.integer)
+        or max_degree_xy < 0
+    ):
+        raise ConfigError(f"max_degree_xy must be a non-negative integer, got {max_degree_xy!r}")
+    if max_degree_lambda is not None and (
+        isinstance(max_degree_lambda, bool)
+        or not isinstance(max_degree_lambda, int | np.integer)
+        or max_degree_lambda < 0
+    ):
+        raise ConfigError(
+            f"max_degree_lambda must be a non-negative integer, got {max_degree_lambda!r}"
+        )
+    if isinstance(folds, bool) or not isinstance(folds, int | np.integer) or folds < 2:
+        raise ConfigError(f"folds must be an integer ≥ 2, got {folds!r}")
+    rng = np.random.default_rng(0) if rng is None else rng
+    if direction == "to_reference":
+        x, y, dx, dy = keypoints.swapped()
+    else:
+        x, y, dx, dy = keypoints.x, keypoints.y, keypoints.dx, keypoints.dy
+    xy = np.column_stack([x, y])
+    d = np.column_stack([dx, dy])
+    started = time.perf_counter()
+
+    if keypoints.spectral:
+        wavelength = keypoints.wavelength_nm
+        fit = _fit_spectral(
+            xy, wavelength, d,
+            max_degree_xy=int(max_degree_xy),
+            max_degree_lambda=max_degree_lambda,
+            folds=int(folds),
+            rng=rng,
+            max_condition=max_condition,
+            progress=progress,
+        )  # fmt: skip
+        fields = {SPECTRAL: fit.field}
+        selection = fit.report
+        region = CalibratedRegion.from_points(x, y, wavelength)
+        variables = "xylambda"
+    else:
+        fields, reports = {}, {}
+        channels = [c for c in keypoints.bands if c != keypoints.reference]
+        if not channels:
+            raise DataError(
+                f"the colour-channel keypoints hold only the reference channel "
+                f"{keypoints.reference!r}; nothing to model"
+            )
+        for c in channels:
+            rows = keypoints.channel == c
+            fit = _fit_channel(
+                xy[rows], d[rows], str(c),
+                max_degree=int(max_degree_xy),
+                folds=int(folds),
+                rng=rng,
+                max_condition=max_condition,
+                progress=progress,
+            )  # fmt: skip
+            fields[str(c)] = fit.field
+            reports[str(c)] = fit.report
+        keep = np.isin(keypoints.channel, channels)
+        selection = {
+            "method": "cv-1se",
+            "error_units": "px^2 (mean squared Euclidean prediction error)",
+            "folds": int(folds),
+            **{
+                key: {c: r[key] for c, r in reports.items()}
+                for key in (
+                    "degree_xy",
+                    "cv_error",
+                    "cv_std",
+                    "condition_number",
+                    "skipped",
+                    "n_keypoints",
+                )
+            },
+            "degree_lambda": None,
+            "n_keypoints_total": int(keep.sum()),
+        }
+        region = CalibratedRegion.from_points(x[keep], y[keep])
+        variables = "xy"
+    selection["seconds"] = round(time.perf_counter() - started, 3)
+    provenance = {**keypoints.meta, "keypoints": keypoints.source, "bands": keypoints.bands}
+    return DispersionModel(
+        type="polynomial",
+        variables=variables,
+        direction=direction,
+        reference=keypoints.reference,
+        image_shape=keypoints.image_shape,
+        fields=fields,
+        region=region,
+        selection=selection,
+        provenance=provenance,
+    )
+
+
+def _fit_spectral(
+    xy: np.ndarray,
+    wavelength: np.ndarray,
+    d: np.ndarray,
+    *,
+    max_degree_xy: int,
+    max_degree_lambda: int | None,
+    folds: int,
+    rng: np.random.Generator,
+    max_condition: float,
+    progress: Progress | None,
+) -> _Fit:
+    """Trivariate polynomial with degrees by thesis Algorithm 1."""
+    bands = np.unique(wavelength)
+    n_bands = len(bands)
+    if n_bands < 3:
+        raise DataError(
+            f"the keypoints cover {n_bands} band(s) ({', '.join(f'{b:g} nm' for b in bands)}); "
+            "a spectral dispersion model needs at least 3 bands (Algorithm 1 validates on "
+            "the bands between the shortest and longest wavelength); with fewer bands fit a "
+            "colour-channel model instead"
+        )
+    band_index = np.searchsorted(bands, wavelength)
+    counts = np.bincount(band_index, minlength=n_bands)
+    for b, c in zip(bands, counts, strict=True):
+        if c < MIN_KEYPOINTS:
+            raise DataError(
+                f"band {b:g} nm has {c} keypoint(s); each band needs at least {MIN_KEYPOINTS} "
+                f"for a polynomial dispersion model ({len(wavelength)} keypoints in "
+                f"{n_bands} bands)"
+            )
+    limit = n_bands - 2
+    if max_degree_lambda is None:
+        max_degree_lambda = limit
+    elif max_degree_lambda > limit:
+        raise DataError(
+            f"max_degree_lambda {max_degree_lambda} is too high for {n_bands} bands: "
+            f"the degree in λ can be at most N_λ − 2 = {limit}"
+        )
+    points = np.column_stack([xy, wavelength])
+    normaliser = Normaliser.fit(points, d, what="spectral keypoints")
+    u = normaliser.inputs(points)
+    domain = pb.Domain.fit(u)
+    t = domain(u)
+    target = normaliser.outputs(d)
+    exps = pb.exponent_table(max_degree_xy, max_degree_lambda)
+    X = pb.design_matrix(t, exps)
+
+    # Algorithm 1 splits: band i (2…N_λ − 1) plus one tenth of the rest
+    parts: list[np.ndarray] = []
+    splits: list[list[int]] = []
+    for i in range(1, n_bands - 1):
+        parts.append(np.flatnonzero(band_index == i))
+        band_part = len(parts) - 1
+        rest = np.flatnonzero(band_index != i)
+        for tenth in np.array_split(rng.permutation(rest), folds):
+            parts.append(np.sort(tenth))
+            splits.append([band_part, len(parts) - 1])
+    groups = []
+    for b in range(max_degree_lambda + 1):
+        cols = pb.candidate_columns(exps, max_degree_xy, b)
+        sizes = [pb.n_terms_xy(dd) * (b + 1) for dd in range(max_degree_xy + 1)]
+        groups.append((cols, sizes))
+    report_progress = (
+        None
+        if progress is None
+        else lambda done, total: progress(done, total, "cross-validating polynomial degrees")
+    )
+    cv = pb.cross_validate(
+        X, target, parts, splits, groups, max_condition=max_condition, progress=report_progress
+    )
+    px2 = normaliser.displacement_scale**2
+    mean, std = cv.mean_std()  # (b, d)
+    mean, std = mean.T * px2, std.T * px2  # [d, b], px²
+    if not np.any(np.isfinite(mean)):
+        raise DataError(
+            f"no polynomial dispersion model can be fitted to {len(wavelength)} keypoints in "
+            f"{n_bands} bands (fewest in one band: {counts.min()} at "
+            f"{bands[np.argmin(counts)]:g} nm): every candidate degree was skipped "
+            f"({_first_reason(cv.skipped)})"
+        )
+    degree_xy, degree_lambda = pb.one_standard_error_2d(mean, std)
+    cols = pb.candidate_columns(exps, degree_xy, degree_lambda)
+    coef, cond = pb.solve_lstsq(
+        X[:, cols], target, max_condition=max_condition, what="spectral polynomial model"
+    )
+    field = PolynomialField(normaliser, domain, exps[cols], coef)
+    skipped = [
+        {"degree_xy": i, "degree_lambda": g, "reason": reason}
+        for (g, i), reason in sorted(cv.skipped.items(), key=lambda kv: (kv[0][1], kv[0][0]))
+    ]
+    best = np.unravel_index(int(np.nanargmin(mean)), mean.shape)
+    report = {
+        "method": "cv-1se",
+        "error_units": "px^2 (mean squared Euclidean prediction error)",
+        "degree_xy": degree_xy,
+        "degree_lambda": degree_lambda,
+        "cv_error": pb.table(mean),
+        "cv_std": pb.table(std),
+        "cv_min": {
+            "degree_xy": int(best[0]),
+            "degree_lambda": int(best[1]),
+            "error": float(mean[best]),
+        },
+        "condition_number": cond,
+        "skipped": skipped,
+        "n_keypoints": len(wavelength),
+        "folds": folds,
+        "validation_bands": [float(b) for b in bands[1:-1]],
+        "max_degree_xy": max_degree_xy,
+        "max_degree_lambda": int(max_degree_lambda),
+        "exact_solves": cv.exact_solves,
+    }
+    return _Fit(field, report)
+
+
+def _fit_channel(
+    xy: np.ndarray,
+    d: np.ndarray,
+    channel: str,
+    *,
+    max_degree: int,
+    folds: int,
+    rng: np.random.Generator,
+    max_condition: float,
+    progress: Progress | None,
+) -> _Fit:
+    """Bivariate polynomial of one colour channel, degree by 10-fold CV and the 1-SE rule."""
+    n = len(xy)
+    if n < max(MIN_KEYPOINTS, folds):
+        raise DataError(
+            f"channel {channel} has {n} keypoint(s); a polynomial dispersion model with "
+            f"{folds}-fold cross-validation needs at least {max(MIN_KEYPOINTS, folds)}"
+        )
+    normaliser = Normaliser.fit(xy, d, what=f"channel {channel} keypoints")
+    u = normaliser.inputs(xy)
+    domain = pb.Domain.fit(u)
+    target = normaliser.outputs(d)
+    exps = pb.exponent_table(max_degree)
+    X = pb.design_matrix(domain(u), exps)
+    splits = pb.kfold_splits(n, folds, rng)
+    sizes = [pb.n_terms_xy(dd) for dd in range(max_degree + 1)]
+    report_progress = (
+        None
+        if progress is None
+        else lambda done, total: progress(done, total, f"cross-validating channel {channel}")
+    )
+    cv = pb.cross_validate(
+        X, target, splits, [[j] for j in range(len(splits))], [(np.arange(len(exps)), sizes)],
+        max_condition=max_condition, progress=report_progress,
+    )  # fmt: skip
+    mean, std = cv.mean_std()
+    px2 = normaliser.displacement_scale**2
+    mean, std = mean[0] * px2, std[0] * px2
+    if not np.any(np.isfinite(mean)):
+        raise DataError(
+            f"no polynomial dispersion model can be fitted to the {n} keypoints of channel "
+            f"{channel}: every candidate degree was skipped ({_first_reason(cv.skipped)})"
+        )
+    degree = pb.one_standard_error_1d(mean, std)
+    cols = np.arange(sizes[degree])
+    coef, cond = pb.solve_lstsq(
+        X[:, cols], target, max_condition=max_condition, what=f"channel {channel} polynomial model"
+    )
+    return _Fit(
+        PolynomialField(normaliser, domain, exps[cols], coef),
+        {
+            "degree_xy": degree,
+            "cv_error": pb.table(mean),
+            "cv_std": pb.table(std),
+            "condition_number": cond,
+            "skipped": [
+                {"degree_xy": i, "reason": reason} for (_, i), reason in sorted(cv.skipped.items())
+            ],
+            "n_keypoints": n,
+        },
+    )
+
+
+def _first_reason(skipped: Mapping[tuple[int, int], str]) -> str:
+    """The reason the smallest candidate was skipped."""
+    if not skipped:
+        return "no candidates"
+    key = min(skipped, key=lambda k: (k[1], k[0]))
+    return skipped[key]
