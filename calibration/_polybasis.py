@@ -56,16 +56,13 @@ both cores.
 from __future__ import annotations
 
 import contextlib
-import ctypes
-import functools
-import os
-import threading
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from scipy.linalg import lapack
+from threadpoolctl import threadpool_limits
 
 from labkit.errors import DataError
 
@@ -83,76 +80,18 @@ CHUNK_ROWS = 1 << 16
 
 
 # -- BLAS threads -------------------------------------------------------------------------
-@functools.cache
-def _openblas_controls() -> tuple[tuple[Any, Any], ...]:
-    """(get, set) thread-count functions of the OpenBLAS libraries loaded in this process.
-
-    numpy and scipy each bundle an OpenBLAS; their symbols carry a ``scipy_`` prefix and a
-    ``64_`` suffix in some builds (the names threadpoolctl looks for). Linux only (reads
-    /proc/self/maps); elsewhere nothing is found and :func:`blas_threads` does nothing.
-    """
-    try:
-        with open("/proc/self/maps") as maps:
-            paths = {
-                line.split()[-1]
-                for line in maps
-                if "openblas" in line.rsplit("/", 1)[-1].lower() and ".so" in line
-            }
-    except OSError:
-        return ()
-    controls = []
-    for path in sorted(paths):
-        try:
-            lib = ctypes.CDLL(path, mode=os.RTLD_NOLOAD | os.RTLD_LAZY)
-        except OSError:
-            continue
-        for prefix in ("scipy_", ""):
-            for suffix in ("64_", "_64", ""):
-                get = getattr(lib, f"{prefix}openblas_get_num_threads{suffix}", None)
-                put = getattr(lib, f"{prefix}openblas_set_num_threads{suffix}", None)
-                if get is not None and put is not None:
-                    get.restype = ctypes.c_int
-                    put.argtypes = [ctypes.c_int]
-                    controls.append((get, put))
-                    break
-            else:
-                continue
-            break
-    return tuple(controls)
-
-
-_blas_lock = threading.Lock()
-_blas_users = 0
-_blas_saved: list[int] = []
-
-
 @contextlib.contextmanager
 def blas_threads(count: int = 1) -> Iterator[None]:
-    """Limit OpenBLAS to `count` threads inside the block (restored afterwards).
+    """Limit the BLAS libraries to `count` threads inside the block (restored afterwards).
 
     Cross-validation makes thousands of BLAS/LAPACK calls on matrices of a few hundred
     rows; multi-threaded OpenBLAS gains nothing there and, when other processes compete
     for the cores, its synchronisation made model selection 15× slower (measured: 44 s
-    instead of 2.5 s for 8000 keypoints on a loaded 2-core machine). The setting is
-    process-wide: nested or concurrent blocks share it, and the first one in saves and
-    the last one out restores the previous thread counts.
+    instead of 2.5 s for 8000 keypoints on a loaded 2-core machine). The limit is
+    process-wide while the block runs (threadpoolctl).
     """
-    global _blas_users
-    controls = _openblas_controls()
-    with _blas_lock:
-        if _blas_users == 0:
-            _blas_saved[:] = [get() for get, _ in controls]
-            for _, put in controls:
-                put(count)
-        _blas_users += 1
-    try:
+    with threadpool_limits(limits=count, user_api="blas"):
         yield
-    finally:
-        with _blas_lock:
-            _blas_users -= 1
-            if _blas_users == 0:
-                for (_, put), n in zip(controls, _blas_saved, strict=True):
-                    put(n)
 
 
 # -- basis ------------------------------------------------------------------------------

@@ -111,3 +111,33 @@ def _assert_models_agree(first, second, wavelengths, *, tolerance_px: float) -> 
         bx, by = second.displacement(x, y, wavelength)
         worst = max(worst, float(np.sqrt(np.mean((ax - bx) ** 2 + (ay - by) ** 2))))
     assert worst <= tolerance_px, worst
+
+
+def test_colour_channel_model_matches_the_lens(disk_hdr):
+    """R and B relative to G in the unfiltered image (Rudakova–Monasse's colour model).
+
+    Each channel sees the disk edges through its own spectrum, so its true displacement
+    is the lens field times s(λ) averaged over the edge contrast the channel records:
+    lamp × channel response × (paper − toner reflectance).
+    """
+    rig, _, images = disk_hdr
+    sim = SimulatedRig(rig)
+    result = calibrate_dispersion(images, reference="G", model="polynomial", workers=1)
+    model = result.model
+    assert model.variables == "xy" and model.channels == ["B", "R"]
+    w = sim.wavelengths
+    materials = sim.scene("disks").materials.resample(w).values
+    contrast = sim.lamp * (materials[:, 0] - materials[:, 1])
+    q = sim.response.select(["R", "G", "B"]).resample(w).values
+    s = sim.lens.spectral_factor(w)
+    mean_s = (q * (contrast * s)[:, None]).sum(0) / (q * contrast[:, None]).sum(0)
+    rows, cols = model.image_shape
+    yy, xx = np.mgrid[0:rows:8, 0:cols:8].astype(float)
+    inside = model.region.contains(xx, yy)
+    x, y = xx[inside], yy[inside]
+    ux, uy = sim.lens.radial_field(x, y)
+    for index, channel in ((0, "R"), (2, "B")):
+        mx, my = model.displacement(x, y, channel=channel)
+        ds = mean_s[index] - mean_s[1]
+        rms = float(np.sqrt(np.mean((mx - ux * ds) ** 2 + (my - uy * ds) ** 2)))
+        assert rms <= 0.1, (channel, rms)
