@@ -31,6 +31,7 @@ import yaml
 
 from labkit.errors import ConfigError, DataError
 from labkit.io import write_text_atomic
+from labkit.io.plain import to_plain
 
 FORMAT = 1
 KIND = "labkit.dispersion_model"
@@ -280,8 +281,8 @@ class DispersionModel:
             "image_shape": [int(self.image_shape[0]), int(self.image_shape[1])],
             "region": self.region.to_dict(),
             "fields": {name: f.to_dict() for name, f in sorted(self.fields.items())},
-            "selection": _plain(self.selection),
-            "provenance": _plain(self.provenance),
+            "selection": to_plain(self.selection),
+            "provenance": to_plain(self.provenance),
         }
 
     def save(self, path: str | Path) -> Path:
@@ -406,18 +407,3 @@ def float_array(
         want = " × ".join("n" if s is None else str(s) for s in shape)
         raise ConfigError(f"{where} must be an array of shape {want}, got {array.shape}")
     return array
-
-
-def _plain(value: Any) -> Any:
-    """Numpy scalars/arrays → plain Python for YAML."""
-    if isinstance(value, Mapping):
-        return {str(k): _plain(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_plain(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _plain(value.tolist())
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, Path):
-        return str(value)
-    return value

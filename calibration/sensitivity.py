@@ -46,6 +46,7 @@ from labkit.errors import ConfigError, DataError
 from labkit.fitting import principal_slope
 from labkit.io.atomic import write_text_atomic
 from labkit.io.exr import RawImage
+from labkit.io.plain import to_plain
 
 FORMAT_VERSION = 1
 
@@ -199,7 +200,7 @@ class ChannelSensitivity:
             "kind": "channel_sensitivity",
             "source": self.source,
             "bands": self.rows(),
-            "labkit": _plain(self.labkit),
+            "labkit": to_plain(self.labkit),
         }
         write_text_atomic(path, yaml.safe_dump(document, sort_keys=False, allow_unicode=True))
 
@@ -625,19 +626,6 @@ def _cell(value: Any) -> str:
     if isinstance(value, bool):
         return "true" if value else "false"
     return repr(value) if isinstance(value, float) else str(value)
-
-
-def _plain(value: Any) -> Any:
-    """Provenance made YAML-safe (numpy scalars and arrays → Python)."""
-    if isinstance(value, Mapping):
-        return {str(k): _plain(v) for k, v in value.items()}
-    if isinstance(value, list | tuple | np.ndarray):
-        return [_plain(v) for v in value]
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
 
 
 def _from_csv(path: Path, text: str) -> ChannelSensitivity:

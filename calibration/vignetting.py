@@ -39,6 +39,7 @@ from calibration import _polybasis as pb
 from labkit.cfa import CHANNELS, channel_index, check_layout
 from labkit.errors import ConfigError, DataError
 from labkit.io.atomic import write_text_atomic
+from labkit.io.plain import to_plain
 
 KIND = "labkit.vignetting_model"
 FORMAT = 1
@@ -214,7 +215,7 @@ class VignettingModel:
             },
             "mean_intensity": float(self.mean_intensity),
             "coefficients": self.coefficients.tolist(),
-            "selection": _plain(self.selection),
+            "selection": to_plain(self.selection),
         }
 
     def save(self, path: str | Path) -> Path:
@@ -458,16 +459,3 @@ def fit_vignetting(
             "too much of the image uncovered for the polynomial to extrapolate"
         )
     return model
-
-
-def _plain(value: Any) -> Any:
-    """Numpy scalars/arrays → plain Python for YAML."""
-    if isinstance(value, Mapping):
-        return {str(k): _plain(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_plain(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _plain(value.tolist())
-    if isinstance(value, np.generic):
-        return value.item()
-    return value

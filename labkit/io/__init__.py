@@ -11,6 +11,7 @@ from labkit.io.exr import (
     write_rgb_exr,
     write_spectral_exr,
 )
+from labkit.io.plain import to_plain
 from labkit.io.preview import demosaic_bilinear, raw_preview, to_display, write_png
 from labkit.io.tiff import encode_raw_tiff, read_raw_tiff, write_raw_tiff
 
@@ -28,6 +29,7 @@ __all__ = [
     "read_raw_tiff",
     "read_spectral_exr",
     "to_display",
+    "to_plain",
     "write_png",
     "write_raw_exr",
     "write_raw_tiff",
