@@ -210,11 +210,10 @@ def _percent(value: float) -> str:
 
 
 def _vignetting(args: argparse.Namespace) -> int:
-    from calibration.disks import background_mask
-    from calibration.vignetting import fit_vignetting
-
     from calibration._hdr_inputs import load_scene_hdr, source_of
+    from calibration.disks import background_mask
     from calibration.plots import plot_vignetting
+    from calibration.vignetting import fit_vignetting
     from labkit.errors import DataError
 
     images = {image.illumination: image for image in load_scene_hdr(args.hdr, args.scene)}

@@ -38,9 +38,8 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def _warp(args: argparse.Namespace) -> int:
-    from calibration.warp import correct_channels, correct_spectral
-
     from calibration.dispersion_model import load_dispersion_model
+    from calibration.warp import correct_channels, correct_spectral
     from labkit.errors import DataError
     from labkit.io import (
         demosaic_bilinear,
