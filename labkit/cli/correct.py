@@ -81,6 +81,15 @@ def _warp(args: argparse.Namespace) -> int:
             f"(`labkit calibrate dispersion --reference 600`), but {args.model} is a "
             "colour-channel model"
         )
+    span = model.region.wavelength_nm
+    if span is not None:
+        outside = [w for w in spectral.wavelengths_nm if not span[0] - 0.5 <= w <= span[1] + 0.5]
+        if outside:
+            print(
+                f"warning: bands {', '.join(f'{w:g}' for w in outside)} nm lie outside the "
+                f"calibrated range {span[0]:.1f}–{span[1]:.1f} nm; their correction is "
+                "extrapolated"
+            )
     cube = correct_spectral(spectral.cube, spectral.wavelengths_nm, model, order=args.order)
     write_spectral_exr(
         args.out,
