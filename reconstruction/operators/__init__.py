@@ -1,5 +1,43 @@
-"""Linear operators of problem (3.1): M, Ω, Φ, B and the priors' differences (thesis §3.2–3.5)."""
+"""Linear operators of problem (3.1): M, Ω, Φ, B and the priors' differences (thesis §3.2–3.5).
+
+Contents
+--------
+:class:`LinearOperator`, :func:`dot_test`
+    The base class (forward, adjoint, composition with ``@``, ``.T``) and the dot test.
+:class:`Mosaic` (M, §3.4)
+    Colour image → Bayer mosaic, any of the four layouts.
+:class:`SpectralToColour` (Ω, §3.3.1, (3.6))
+    Spectral bands → raw colour channels by the trapezoid rule over the camera response.
+:class:`SpectralBasis`, :func:`choose_bands` (B, §3.3.2–3.3.3, (3.8)–(3.12))
+    Band centres from the response's support and bandlimit; Gaussian (or sinc) kernels.
+:class:`Dispersion`, :func:`dispersion_samples` (Φ, §3.2.5)
+    Bilinear warping by a ``to_reference`` model, per patch; spectral sampling that keeps
+    consecutive bands ≤ 0.1 px apart.
+:class:`Gradient`, :class:`SpectralGradient`, :class:`Laplacian` (§3.5, (3.15)–(3.20))
+    Periodic (default) or Neumann differences with their Fourier symbols.
+"""
 
 from reconstruction.operators._base import Adjoint, Composition, DotTest, LinearOperator, dot_test
+from reconstruction.operators.basis import BandSelection, SpectralBasis, choose_bands
+from reconstruction.operators.colour import SpectralToColour
+from reconstruction.operators.dispersion import Dispersion, dispersion_samples
+from reconstruction.operators.mosaic import Mosaic
+from reconstruction.operators.priors import Gradient, Laplacian, SpectralGradient
 
-__all__ = ["Adjoint", "Composition", "DotTest", "LinearOperator", "dot_test"]
+__all__ = [
+    "Adjoint",
+    "BandSelection",
+    "Composition",
+    "Dispersion",
+    "DotTest",
+    "Gradient",
+    "Laplacian",
+    "LinearOperator",
+    "Mosaic",
+    "SpectralBasis",
+    "SpectralGradient",
+    "SpectralToColour",
+    "choose_bands",
+    "dispersion_samples",
+    "dot_test",
+]

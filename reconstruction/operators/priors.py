@@ -1,0 +1,244 @@
+"""Difference operators of the regularisation priors (thesis §3.5, Table 3.1, (3.14)–(3.20)).
+
+* :class:`Gradient` — spatial gradient ∇_xy (3.15), the operator of prior S₁ (3.14);
+* :class:`SpectralGradient` — spectral-spatial mixed gradient ∇_λ∇_xy (3.17)–(3.18),
+  the operator of prior S₂;
+* :class:`Laplacian` — 5-point spatial Laplacian ∇²_xy (3.20), the operator of prior S₃.
+
+Conventions
+-----------
+Images are (rows, cols, k) channels-last; x is the column index (axis 1), y the row index
+(axis 0). Gradients stack their two components last: ``[..., 0]`` along x, ``[..., 1]``
+along y. Differences are forward differences, ``(D f)[i] = f[i+1] − f[i]``.
+
+Boundary
+--------
+``boundary="periodic"`` (default): the image wraps around, ``f[n] ≡ f[0]``, so the last
+column/row difference is ``f[0] − f[n−1]``. Every spatial operator is then circulant
+(diagonalised by the 2-D DFT), which the FFT solver of the normal equations needs;
+:meth:`fourier_symbol` gives the per-frequency multipliers.
+
+``boundary="neumann"``: the difference at the far edge (last column/row) is zero. The
+Laplacian is then ``D_xᵀD_x + D_yᵀD_y``, i.e. (3.20) inside and mirrored at the edges.
+Not circulant: no Fourier symbol.
+
+The spectral difference (3.18) of :class:`SpectralGradient` is never wrapped: k bands
+give k − 1 differences (Δλ = one band; the thesis's band spacing is uniform).
+
+Fourier convention
+------------------
+NumPy's ``fft2`` over axes (0, 1), ``F(u)[ky, kx] = Σ u[y, x] exp(−2πi (ky y/rows + kx x/cols))``.
+A periodic forward difference along x multiplies ``F`` by ``exp(2πi kx/cols) − 1``, so
+``forward(u) = ifft2(symbol · fft2(u))`` (real part). For the normal equations only
+``|symbol|²`` matters (e.g. ``4 − 2cos(2πkx/cols) − 2cos(2πky/rows)`` for ``∇ᵀ∇``, equal to
+the Laplacian's symbol).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+
+from labkit.errors import DataError
+from reconstruction.operators._base import LinearOperator
+
+Boundary = Literal["periodic", "neumann"]
+BOUNDARIES = ("periodic", "neumann")
+
+
+def _check_boundary(boundary: str) -> str:
+    if boundary not in BOUNDARIES:
+        raise DataError(f"unknown boundary {boundary!r}; use one of {', '.join(BOUNDARIES)}")
+    return boundary
+
+
+def _check_shape(shape: tuple[int, ...], what: str, min_channels: int = 1) -> tuple[int, ...]:
+    shape = tuple(int(n) for n in shape)
+    if len(shape) != 3 or min(shape[:2]) < 1 or shape[2] < min_channels:
+        raise DataError(
+            f"{what} needs a domain shape (rows, cols, channels) with rows, cols ≥ 1 and "
+            f"channels ≥ {min_channels}, got {shape}"
+        )
+    return shape
+
+
+def difference(u: np.ndarray, axis: int, boundary: str) -> np.ndarray:
+    """Forward difference ``u[i+1] − u[i]`` along `axis` (same shape as `u`)."""
+    if boundary == "periodic":
+        return np.roll(u, -1, axis=axis) - u
+    out = np.zeros_like(u)
+    inner = [slice(None)] * u.ndim
+    inner[axis] = slice(0, -1)
+    out[tuple(inner)] = np.diff(u, axis=axis)
+    return out
+
+
+def difference_adjoint(v: np.ndarray, axis: int, boundary: str) -> np.ndarray:
+    """Adjoint of :func:`difference`: ``v[i−1] − v[i]`` with the boundary's end terms."""
+    if boundary == "periodic":
+        return np.roll(v, 1, axis=axis) - v
+    n = v.shape[axis]
+    kept = np.take(v, np.arange(n - 1), axis=axis)  # the far-edge difference is always 0
+    zero = np.zeros_like(np.take(v, [0], axis=axis))
+    return np.concatenate([zero, kept], axis=axis) - np.concatenate([kept, zero], axis=axis)
+
+
+def difference_symbol(n: int) -> np.ndarray:
+    """DFT multiplier ``exp(2πi k/n) − 1`` (k = 0 … n−1) of the periodic forward difference."""
+    return np.exp(2j * np.pi * np.arange(n) / n) - 1.0
+
+
+class _SpatialDifference(LinearOperator):
+    """Shared boundary handling and Fourier symbols of the spatial difference operators."""
+
+    boundary: str
+
+    def _spatial_shape(self, shape: tuple[int, int] | None) -> tuple[int, int]:
+        if self.boundary != "periodic":
+            raise DataError(
+                f"{self.name} with boundary {self.boundary!r} is not circulant and has no "
+                "Fourier symbol; construct it with boundary='periodic' for FFT solvers"
+            )
+        rows, cols = self.domain_shape[:2] if shape is None else tuple(int(n) for n in shape)
+        return rows, cols
+
+    def _gradient_symbol(self, shape: tuple[int, int] | None) -> np.ndarray:
+        rows, cols = self._spatial_shape(shape)
+        sx = np.broadcast_to(difference_symbol(cols)[None, :], (rows, cols))
+        sy = np.broadcast_to(difference_symbol(rows)[:, None], (rows, cols))
+        return np.stack([sx, sy], axis=-1)
+
+    def _gradient(self, u: np.ndarray) -> np.ndarray:
+        return np.stack([difference(u, 1, self.boundary), difference(u, 0, self.boundary)], axis=-1)
+
+    def _gradient_adjoint(self, g: np.ndarray) -> np.ndarray:
+        return difference_adjoint(g[..., 0], 1, self.boundary) + difference_adjoint(
+            g[..., 1], 0, self.boundary
+        )
+
+
+class Gradient(_SpatialDifference):
+    """Spatial gradient ∇_xy (3.15): (rows, cols, k) → (rows, cols, k, 2).
+
+    ``out[y, x, c, 0] = u[y, x+1, c] − u[y, x, c]`` and
+    ``out[y, x, c, 1] = u[y+1, x, c] − u[y, x, c]``, per channel c.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        Domain shape (rows, cols, k): pixels and channels (bands or colour channels).
+    boundary : {"periodic", "neumann"}
+        Wrap-around (default, circulant) or zero difference at the last column/row.
+    """
+
+    name = "∇xy"
+
+    def __init__(self, shape: tuple[int, int, int], *, boundary: Boundary = "periodic") -> None:
+        shape = _check_shape(shape, "Gradient")
+        self.boundary = _check_boundary(boundary)
+        super().__init__(shape, (*shape, 2))
+
+    def fourier_symbol(self, shape: tuple[int, int] | None = None) -> np.ndarray:
+        """Per-frequency multipliers, complex (rows, cols, 2): ``[..., 0]`` x, ``[..., 1]`` y.
+
+        ``forward(u)[..., c, d] = ifft2(symbol[..., d] · fft2(u[..., c]))`` (periodic only).
+        `shape` (rows, cols) defaults to the operator's image size.
+        """
+        return self._gradient_symbol(shape)
+
+    def _forward(self, x: np.ndarray) -> np.ndarray:
+        return self._gradient(x)
+
+    def _adjoint(self, y: np.ndarray) -> np.ndarray:
+        return self._gradient_adjoint(y)
+
+
+class SpectralGradient(_SpatialDifference):
+    """Spectral-spatial gradient ∇_λ∇_xy (3.17)–(3.18): (rows, cols, k) → (rows, cols, k−1, 2).
+
+    ``out[..., b, d] = (∇_xy u)[..., b+1, d] − (∇_xy u)[..., b, d]`` for b = 0 … k−2: the
+    spectral forward difference (one band apart, not wrapped) of the spatial gradient.
+    The two differences commute, so this is also ∇_xy of the band differences.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        Domain shape (rows, cols, k), k ≥ 2 spectral bands.
+    boundary : {"periodic", "neumann"}
+        Spatial boundary, as for :class:`Gradient`.
+    """
+
+    name = "∇λ∇xy"
+
+    def __init__(self, shape: tuple[int, int, int], *, boundary: Boundary = "periodic") -> None:
+        shape = _check_shape(shape, "SpectralGradient", min_channels=2)
+        self.boundary = _check_boundary(boundary)
+        rows, cols, k = shape
+        super().__init__(shape, (rows, cols, k - 1, 2))
+
+    @property
+    def spectral_matrix(self) -> np.ndarray:
+        """The spectral difference D_λ as a (k−1, k) matrix: row b is ``e_{b+1} − e_b``."""
+        k = self.domain_shape[2]
+        return np.eye(k - 1, k, 1) - np.eye(k - 1, k)
+
+    def fourier_symbol(self, shape: tuple[int, int] | None = None) -> np.ndarray:
+        """Spatial multipliers, complex (rows, cols, 2), as :meth:`Gradient.fourier_symbol`.
+
+        The operator is their Kronecker product with :attr:`spectral_matrix`:
+        ``forward(u)[..., :, d] = ifft2(symbol[..., None, d] · fft2(u @ D_λᵀ))``. For the
+        normal equations, ``(|s_x|² + |s_y|²) ⊗ D_λᵀD_λ`` per spatial frequency.
+        """
+        return self._gradient_symbol(shape)
+
+    def _forward(self, x: np.ndarray) -> np.ndarray:
+        return self._gradient(np.diff(x, axis=2))
+
+    def _adjoint(self, y: np.ndarray) -> np.ndarray:
+        z = self._gradient_adjoint(y)  # (rows, cols, k−1)
+        zero = np.zeros_like(z[:, :, :1])
+        return np.concatenate([zero, z], axis=2) - np.concatenate([z, zero], axis=2)
+
+
+class Laplacian(_SpatialDifference):
+    """Five-point spatial Laplacian ∇²_xy (3.20): (rows, cols, k) → (rows, cols, k).
+
+    ``out = 4u[y, x] − u[y, x+1] − u[y, x−1] − u[y+1, x] − u[y−1, x]`` per channel (the
+    thesis's sign: positive semi-definite). It equals ``D_xᵀD_x + D_yᵀD_y`` for the
+    forward differences of :class:`Gradient`, so it is self-adjoint.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        Domain shape (rows, cols, k).
+    boundary : {"periodic", "neumann"}
+        Wrap-around (default), or mirrored edges (``D_xᵀD_x + D_yᵀD_y`` with Neumann
+        differences: missing neighbours are replaced by the pixel itself).
+    """
+
+    name = "∇²xy"
+
+    def __init__(self, shape: tuple[int, int, int], *, boundary: Boundary = "periodic") -> None:
+        shape = _check_shape(shape, "Laplacian")
+        self.boundary = _check_boundary(boundary)
+        super().__init__(shape, shape)
+
+    def fourier_symbol(self, shape: tuple[int, int] | None = None) -> np.ndarray:
+        """Real per-frequency multiplier (rows, cols): ``4 − 2cos(2πkx/cols) − 2cos(2πky/rows)``.
+
+        ``forward(u)[..., c] = ifft2(symbol · fft2(u[..., c]))`` (periodic only).
+        """
+        rows, cols = self._spatial_shape(shape)
+        sx = 2.0 - 2.0 * np.cos(2.0 * np.pi * np.arange(cols) / cols)
+        sy = 2.0 - 2.0 * np.cos(2.0 * np.pi * np.arange(rows) / rows)
+        return sy[:, None] + sx[None, :]
+
+    def _forward(self, x: np.ndarray) -> np.ndarray:
+        b = self.boundary
+        return difference_adjoint(difference(x, 1, b), 1, b) + difference_adjoint(
+            difference(x, 0, b), 0, b
+        )
+
+    def _adjoint(self, y: np.ndarray) -> np.ndarray:
+        return self._forward(y)

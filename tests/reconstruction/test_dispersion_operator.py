@@ -1,0 +1,291 @@
+"""The dispersion operator Φ (thesis §3.2.5): adjoint, planted shifts, a fitted lens model,
+spectral sampling of dispersion, and bad input."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+from scipy.ndimage import map_coordinates
+
+from calibration.dispersion_model import CalibratedRegion, DispersionModel
+from calibration.keypoints import DispersionKeypoints
+from calibration.polynomial import fit_polynomial_model
+from labkit.errors import DataError
+from labkit.sim.lens import Lens
+from reconstruction.operators import dot_test
+from reconstruction.operators.dispersion import Dispersion, dispersion_samples
+
+SHAPE = (48, 64)
+WAVES = [(1 / 23, 1 / 31, 0.3, 0.5), (-1 / 17, 1 / 29, 1.1, 0.3), (1 / 13, -1 / 41, 2.0, 0.2)]
+
+
+def smooth(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """A smooth analytic image: 1 + tilted sine waves of period ≥ 13 px."""
+    out = np.ones(np.broadcast_shapes(np.shape(x), np.shape(y)))
+    for u, v, phase, amplitude in WAVES:
+        out += amplitude * np.sin(2 * np.pi * (u * x + v * y) + phase)
+    return out
+
+
+def grid(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    yy, xx = np.mgrid[0 : shape[0], 0 : shape[1]].astype(np.float64)
+    return xx, yy
+
+
+class ConstantField:
+    """e = (ex, ey) everywhere, or e scaled by (λ − 600) / 100 with `per_nm`."""
+
+    kind = "test"
+
+    def __init__(self, shift: tuple[float, float], *, per_nm: bool = False) -> None:
+        self.shift = np.asarray(shift, dtype=np.float64)
+        self.per_nm = per_nm
+
+    def evaluate(self, points: np.ndarray) -> np.ndarray:
+        scale = np.ones((points.shape[0], 1))
+        if self.per_nm:
+            scale = (points[:, 2:3] - 600.0) / 100.0
+        return scale * self.shift
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"kind": self.kind}
+
+
+class RadialField:
+    """e = m(λ) (p − c) with m linear in λ − 600 nm: a magnification change."""
+
+    kind = "test"
+
+    def __init__(self, magnification: float = 0.03, centre=(30.0, 20.0)) -> None:
+        self.magnification = magnification
+        self.centre = np.asarray(centre, dtype=np.float64)
+
+    def evaluate(self, points: np.ndarray) -> np.ndarray:
+        scale = (points[:, 2:3] - 600.0) / 100.0
+        return scale * self.magnification * (points[:, :2] - self.centre)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"kind": self.kind}
+
+
+def spectral_model(
+    field: Any, *, direction: str = "to_reference", shape: tuple[int, int] = SHAPE
+) -> DispersionModel:
+    x, y = np.meshgrid([0.0, shape[1] - 1.0], [0.0, shape[0] - 1.0])
+    return DispersionModel(
+        type="test",
+        variables="xylambda",
+        direction=direction,
+        reference=600.0,
+        image_shape=shape,
+        fields={"spectral": field},
+        region=CalibratedRegion.from_points(x, y, np.array([400.0, 700.0])),
+    )
+
+
+def channel_model(fields: dict[str, Any], *, direction: str = "to_reference") -> DispersionModel:
+    x, y = np.meshgrid([0.0, SHAPE[1] - 1.0], [0.0, SHAPE[0] - 1.0])
+    return DispersionModel(
+        type="test",
+        variables="xy",
+        direction=direction,
+        reference="G",
+        image_shape=SHAPE,
+        fields=fields,
+        region=CalibratedRegion.from_points(x, y),
+    )
+
+
+# -- 1. adjoint -------------------------------------------------------------------------
+@pytest.mark.parametrize(("dtype", "tolerance"), [(np.float64, 1e-10), (np.float32, 1e-5)])
+@pytest.mark.parametrize(("origin", "shape"), [((0, 0), None), ((7, 11), (21, 30))])
+def test_dot_test(dtype: type, tolerance: float, origin, shape) -> None:
+    """⟨Φx, y⟩ = ⟨x, Φᵀy⟩ with shifts of up to 2.2 px, border clamping included."""
+    model = spectral_model(RadialField(0.03))
+    op = Dispersion(model, np.array([420.0, 510.0, 600.0, 690.0]), origin=origin, shape=shape)
+    assert op.domain_shape == op.range_shape
+    assert op.max_shift_px > 1.0
+    result = dot_test(op, rng=np.random.default_rng(3), dtype=dtype)
+    assert result.relative_error <= tolerance
+    x = np.random.default_rng(4).standard_normal(op.domain_shape).astype(dtype)
+    assert op.forward(x).dtype == dtype
+    assert op.adjoint(x).dtype == dtype
+
+
+# -- 2. planted constant displacement ------------------------------------------------------
+@pytest.mark.parametrize(("origin", "shape"), [((0, 0), None), ((5, 9), (20, 25))])
+def test_constant_shift_samples_linear_image_exactly(origin, shape) -> None:
+    """Output(q) = input(q + e), e = (0.25, −0.5): exact for a linear image (bilinear
+    interpolation reproduces linear functions); border samples are clamped."""
+    e = (0.25, -0.5)
+    model = spectral_model(ConstantField(e))
+    op = Dispersion(model, np.array([500.0, 650.0]), origin=origin, shape=shape)
+    rows, cols = op.patch_shape
+    xx, yy = grid((rows, cols))
+    gx, gy = xx + origin[1], yy + origin[0]  # full-image coordinates
+
+    def linear(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return 0.3 + 0.02 * x - 0.035 * y
+
+    latent = np.stack([linear(gx, gy), 2.0 * linear(gx, gy)], axis=-1)
+    out = op.forward(latent)
+    expected = linear(gx + e[0], gy + e[1])
+    # interior: q + e inside the patch (x + 0.25 ≤ cols − 1, y − 0.5 ≥ 0)
+    inner = (slice(1, None), slice(0, -1))
+    assert np.max(np.abs(out[..., 0][inner] - expected[inner])) <= 1e-12
+    assert np.max(np.abs(out[..., 1][inner] - 2.0 * expected[inner])) <= 1e-12
+    # first row: y − 0.5 is clamped to the patch's first row
+    clamped = linear(gx[0, :-1] + e[0], gy[0, :-1])
+    assert np.max(np.abs(out[0, :-1, 0] - clamped)) <= 1e-12
+    assert op.max_shift_px == pytest.approx(np.hypot(*e))
+
+
+def test_colour_channel_model_shifts_r_and_b_only() -> None:
+    """Problem (3.27): channels R, G, B; G (the reference) passes unchanged."""
+    model = channel_model({"R": ConstantField((0.5, 0.0)), "B": ConstantField((0.0, 1.0))})
+    op = Dispersion(model, None)
+    assert op.channels == ("R", "G", "B")
+    xx, yy = grid(SHAPE)
+    image = smooth(xx, yy)
+    out = op.forward(np.stack([image, image, image], axis=-1))
+    np.testing.assert_array_equal(out[..., 1], image)
+    np.testing.assert_allclose(out[:, :-1, 0], 0.5 * (image[:, :-1] + image[:, 1:]), atol=1e-12)
+    np.testing.assert_allclose(out[:-1, :, 2], image[1:, :], atol=1e-12)
+    assert dot_test(op, rng=np.random.default_rng(5)).relative_error <= 1e-10
+
+
+# -- 3. a model fitted to a simulated lens ---------------------------------------------------
+LENS_SHAPE = (64, 80)
+LENS = Lens(LENS_SHAPE, max_shift_px=2.5)
+#: Comparison margin, px: > the largest shift (2.2 px), so no sample is clamped.
+MARGIN = 4
+
+
+def fit_lens_model() -> DispersionModel:
+    """A to_reference polynomial model fitted to exact keypoints of LENS (7 bands)."""
+    gy, gx = np.mgrid[2 : LENS_SHAPE[0] : 6, 2 : LENS_SHAPE[1] : 6].astype(np.float64)
+    gx, gy = gx.ravel(), gy.ravel()
+    parts = []
+    for w in np.arange(400.0, 701.0, 50.0):
+        dx, dy = LENS.displacement(gx, gy, w)
+        parts.append((gx, gy, dx, dy, np.full(gx.shape, w)))
+    x, y, dx, dy, w = (np.concatenate(c) for c in zip(*parts, strict=True))
+    keypoints = DispersionKeypoints(
+        x, y, dx, dy, reference=LENS.reference_nm, image_shape=LENS_SHAPE, wavelength_nm=w
+    )
+    return fit_polynomial_model(
+        keypoints, direction="to_reference", max_degree_xy=3, rng=np.random.default_rng(0)
+    )
+
+
+@pytest.fixture(scope="module")
+def lens_model() -> DispersionModel:
+    return fit_lens_model()
+
+
+def test_fitted_lens_model_reproduces_lens_warp(lens_model: DispersionModel) -> None:
+    """Φ L matches the band images the lens forms, B_λ(q) = L(q + e(q, λ)) with
+    e(q, λ) = lens.to_reference(q, s(λ)) − q. Measured max interior errors: 0.020 against
+    the analytic band image (bilinear interpolation error on waves of period ≥ 13 px, as
+    for calibration.warp), 2.7e-4 against bilinear sampling at the true positions (model
+    error ≈ 1e-3 px); without Φ (identity) 0.50."""
+    wavelengths = np.array([420.0, 500.0, 600.0, 680.0])
+    op = Dispersion(lens_model, wavelengths)
+    xx, yy = grid(LENS_SHAPE)
+    latent = np.repeat(smooth(xx, yy)[..., None], len(wavelengths), axis=-1)
+    out = op.forward(latent)
+    inner = (slice(MARGIN, -MARGIN), slice(MARGIN, -MARGIN))
+    worst_analytic = worst_bilinear = worst_identity = 0.0
+    for k, w in enumerate(wavelengths):
+        tx, ty = LENS.to_reference(xx, yy, float(LENS.spectral_factor(w)), iterations=10)
+        band = smooth(tx, ty)
+        sampled = map_coordinates(latent[..., k], [ty, tx], order=1, mode="nearest")
+        worst_analytic = max(worst_analytic, np.abs(out[..., k] - band)[inner].max())
+        worst_bilinear = max(worst_bilinear, np.abs(out[..., k] - sampled)[inner].max())
+        worst_identity = max(worst_identity, np.abs(latent[..., k] - band)[inner].max())
+    assert worst_analytic < 0.025
+    assert worst_bilinear < 5e-4
+    assert worst_identity > 0.4
+    # 600 nm is the reference: Φ is (numerically) the identity there
+    np.testing.assert_allclose(out[..., 2], latent[..., 2], atol=1e-3)
+    assert op.max_shift_px == pytest.approx(2.2, abs=0.1)
+
+
+# -- 4. spectral sampling ----------------------------------------------------------------
+def test_samples_without_dispersion_are_min_count() -> None:
+    model = spectral_model(ConstantField((0.0, 0.0)))
+    samples = dispersion_samples(model, (400.0, 700.0), origin=(0, 0), shape=SHAPE, min_count=5)
+    np.testing.assert_allclose(samples, np.linspace(400.0, 700.0, 5))
+
+
+def test_one_pixel_spread_needs_eleven_samples() -> None:
+    """e goes from 0 at 600 nm to (0.6, 0.8) (1 px) at 700 nm over [600, 700] nm: the
+    thesis' n = ⌈1 / 0.1⌉ + 1 = 11, each step 0.1 px."""
+    model = spectral_model(ConstantField((0.6, 0.8), per_nm=True))
+    samples = dispersion_samples(model, (600.0, 700.0), origin=(0, 0), shape=SHAPE, min_count=3)
+    assert len(samples) == 11
+    assert len(dispersion_samples(model, (600.0, 700.0), shape=SHAPE, min_count=20)) == 20
+
+
+def quadrant_steps(model: DispersionModel, samples: np.ndarray, origin, shape) -> np.ndarray:
+    """|e(λ_k+1) − e(λ_k)| at the patch's quadrant centres, (4, n − 1), px."""
+    qx = origin[1] - 0.5 + shape[1] * np.array([0.25, 0.75, 0.25, 0.75])
+    qy = origin[0] - 0.5 + shape[0] * np.array([0.25, 0.25, 0.75, 0.75])
+    ex, ey = model.displacement(qx[:, None], qy[:, None], samples[None, :])
+    return np.hypot(np.diff(ex, axis=1), np.diff(ey, axis=1))
+
+
+def test_sample_spacing_keeps_consecutive_shifts_small(lens_model: DispersionModel) -> None:
+    """Consecutive samples shift the image by ≤ 0.1 px at the quadrant centres.
+
+    Uniform e linear in λ, reference 600 nm inside [400, 700] nm: end vectors of 2 px and
+    1 px pointing opposite ways, spread 3 px → 31 samples, every step 0.1 px (the thesis'
+    mean length, 1.5 px, would give 16 samples and 0.2 px steps). A magnification change
+    (e varies over the patch): steps ≤ 0.1 px averaged over the quadrant centres (the
+    largest quadrant's steps 0.11 px). The simulated lens (nonlinear in λ): mean step
+    0.095 px over all quadrants and pairs; the largest, 0.20 px, at the blue end where
+    glass dispersion is steepest."""
+    origin, shape = (4, 6), (40, 50)
+    uniform = spectral_model(ConstantField((0.6, 0.8), per_nm=True))
+    samples = dispersion_samples(uniform, (400.0, 700.0), origin=origin, shape=shape, min_count=3)
+    assert len(samples) == 31
+    assert quadrant_steps(uniform, samples, origin, shape).max() <= 0.1 + 1e-12
+    radial = spectral_model(RadialField(0.05))
+    samples = dispersion_samples(radial, (400.0, 700.0), origin=origin, shape=shape, min_count=3)
+    steps = quadrant_steps(radial, samples, origin, shape).mean(axis=0)
+    assert steps.max() <= 0.1 + 1e-12
+    assert steps.min() > 0.09  # not oversampled
+    samples = dispersion_samples(lens_model, (400.0, 700.0), origin=(0, 0), min_count=3)
+    assert quadrant_steps(lens_model, samples, (0, 0), LENS_SHAPE).mean() <= 0.1
+
+
+# -- 5. bad input -------------------------------------------------------------------------
+def test_from_reference_model_is_refused() -> None:
+    model = spectral_model(ConstantField((0.2, 0.1)), direction="from_reference")
+    with pytest.raises(DataError, match="--direction to_reference"):
+        Dispersion(model, np.array([500.0]))
+
+
+@pytest.mark.parametrize(
+    ("origin", "shape"), [((0, 0), (49, 64)), ((40, 0), (10, 10)), ((-1, 0), (5, 5))]
+)
+def test_patch_outside_the_model_image_is_refused(origin, shape) -> None:
+    model = spectral_model(ConstantField((0.2, 0.1)))
+    with pytest.raises(DataError, match="not inside"):
+        Dispersion(model, np.array([500.0]), origin=origin, shape=shape)
+    with pytest.raises(DataError, match="not inside"):
+        dispersion_samples(model, (400.0, 700.0), origin=origin, shape=shape, min_count=3)
+
+
+def test_wavelengths_must_match_the_model_kind() -> None:
+    with pytest.raises(DataError, match="wavelengths_nm"):
+        Dispersion(spectral_model(ConstantField((0.2, 0.1))), None)
+    with pytest.raises(DataError, match="wavelengths_nm=None"):
+        Dispersion(channel_model({"R": ConstantField((0.5, 0.0))}), np.array([500.0]))
+    with pytest.raises(DataError, match="channel"):
+        Dispersion(channel_model({"R": ConstantField((0.5, 0.0))}), None)
+    op = Dispersion(spectral_model(ConstantField((0.2, 0.1))), np.array([500.0, 600.0]))
+    with pytest.raises(DataError, match="expects shape"):
+        op.forward(np.zeros((*SHAPE, 3)))
