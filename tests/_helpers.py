@@ -70,8 +70,7 @@ def sensor_levels(model):
     """SensorLevels of a simulated SensorModel at 0 dB (what the sim camera reports)."""
     from labkit.hdr import SensorLevels
 
-    full = model.full_well_e * model.gain_factor(0.0) + model.black_level_dn
-    return SensorLevels(float(min(np.floor(full + 0.5), model.adc_max)), model.black_level_dn)
+    return SensorLevels(model.saturation_dn(), model.black_level_dn)
 
 
 def write_rig(folder: Path, base: Path, **changes: object) -> Path:

@@ -338,9 +338,7 @@ class SimCamera:
 
     def _saturation_dn(self, gain_db: float) -> float:
         """Counts of a full pixel (full well or ADC limit, whichever comes first)."""
-        model = self.rig.sensor.model
-        full = model.full_well_e * model.gain_factor(gain_db) + model.black_level_dn
-        return float(min(np.floor(full + 0.5), model.adc_max))
+        return self.rig.sensor.model.saturation_dn(gain_db)
 
     def _render(self, trigger: _Trigger) -> Frame:
         rng = np.random.default_rng(np.random.SeedSequence([self.seed, trigger.frame_id]))

@@ -150,9 +150,7 @@ def simulated_hdr_images(
     """
     sensor = rig.sensor
     model = sensor.model
-    full = model.full_well_e * model.gain_factor(0.0)
-    saturation_range = float(min(np.floor(full + model.black_level_dn + 0.5), model.adc_max))
-    saturation_range -= model.black_level_dn
+    saturation_range = model.saturation_dn() - model.black_level_dn
     rig.prerender(scene, list(illuminations))
     images = []
     for name in illuminations:

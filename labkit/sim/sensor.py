@@ -83,6 +83,11 @@ class SensorModel:
         """DN per electron at analogue gain `gain_db` (dB, 20·log10)."""
         return self.gain_dn_per_e * 10.0 ** (gain_db / 20.0)
 
+    def saturation_dn(self, gain_db: float = 0.0) -> float:
+        """Counts of a full pixel, black level included (full well or ADC limit, first hit)."""
+        full = self.full_well_e * self.gain_factor(gain_db) + self.black_level_dn
+        return float(min(np.floor(full + 0.5), self.adc_max))
+
     def expected_variance_dn(self, mean_e: np.ndarray, gain_db: float = 0.0) -> np.ndarray:
         """Poisson–Gaussian variance of the counts (DN²) for mean electrons `mean_e`."""
         g = self.gain_factor(gain_db)
