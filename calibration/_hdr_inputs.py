@@ -47,11 +47,7 @@ def load_filtered_hdr(
         The folder is missing or holds no filtered images, a requested scene is absent,
         or the images of one scene disagree in shape or CFA layout.
     """
-    root = Path(folder)
-    if not root.is_dir():
-        raise DataError(
-            f"HDR folder {root} does not exist; create it with `labkit hdr SESSION --out {root}`"
-        )
+    root = _hdr_root(folder)
     grouped: dict[str, list[RawImage]] = {}
     for path in sorted(root.glob("*/*.exr")):
         image = read_raw_exr(path)
@@ -80,6 +76,16 @@ def load_filtered_hdr(
     return grouped
 
 
+def _hdr_root(folder: str | Path) -> Path:
+    """The HDR folder as a Path, or a DataError saying how to create it."""
+    root = Path(folder)
+    if not root.is_dir():
+        raise DataError(
+            f"HDR folder {root} does not exist; create it with `labkit hdr SESSION --out {root}`"
+        )
+    return root
+
+
 def check_consistent(images: Sequence[RawImage], *, what: str) -> None:
     """Raise DataError unless all `images` share one mosaic shape and CFA layout."""
     if not images:
@@ -103,11 +109,7 @@ def load_scene_hdr(folder: str | Path, scene: str) -> list[RawImage]:
     DataError
         The folder or the scene is missing, or the images disagree in shape or CFA.
     """
-    root = Path(folder)
-    if not root.is_dir():
-        raise DataError(
-            f"HDR folder {root} does not exist; create it with `labkit hdr SESSION --out {root}`"
-        )
+    root = _hdr_root(folder)
     paths = sorted((root / scene).glob("*.exr"))
     if not paths:
         present = sorted(p.name for p in root.iterdir() if p.is_dir() and any(p.glob("*.exr")))
