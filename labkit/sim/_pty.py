@@ -631,3 +631,16 @@ class PtySerialSimulator:
             if fd >= 0:
                 with contextlib.suppress(OSError):  # already closed by the OS: nothing to do
                     os.close(fd)
+
+
+class SliderSimulator(PtySerialSimulator):
+    """A simulated filter slider: its handler moves between slots and reports each move."""
+
+    @property
+    def on_move(self) -> Callable[[int], None] | None:
+        """Callback invoked with the new slot after each completed move."""
+        return self.handler.on_move
+
+    @on_move.setter
+    def on_move(self, callback: Callable[[int], None] | None) -> None:
+        self.handler.on_move = callback

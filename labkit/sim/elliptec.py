@@ -60,7 +60,7 @@ from collections.abc import Callable, Iterator, Sequence
 from typing import ClassVar
 
 from labkit.errors import ConfigError
-from labkit.sim._pty import ProtocolHandler, PtySerialSimulator, Reply, Wait
+from labkit.sim._pty import ProtocolHandler, Reply, SliderSimulator, Wait
 
 __all__ = [
     "ELLIPTEC_MODELS",
@@ -391,7 +391,7 @@ def _address_char(address: int | str) -> str:
     raise ConfigError(f"Elliptec address must be 0-15 or one hex character 0-F, got {address!r}")
 
 
-class ElliptecSimulator(PtySerialSimulator):
+class ElliptecSimulator(SliderSimulator):
     """A Thorlabs Elliptec ELL6 / ELL9 multi-position slider on a pseudo-terminal (9600 8N1).
 
     Parameters
@@ -497,15 +497,6 @@ class ElliptecSimulator(PtySerialSimulator):
     def address(self) -> str:
         """Bus address, one upper-case hex character."""
         return self.handler.address
-
-    @property
-    def on_move(self) -> Callable[[int], None] | None:
-        """Callback invoked with the new slot after each completed move."""
-        return self.handler.on_move
-
-    @on_move.setter
-    def on_move(self, callback: Callable[[int], None] | None) -> None:
-        self.handler.on_move = callback
 
     def move_time(self, start: int, target: int) -> float:
         """Duration of a move between two slots, s (see :meth:`ElliptecHandler.move_time`)."""

@@ -28,7 +28,7 @@ from collections.abc import Callable, Iterator
 from typing import ClassVar, Literal
 
 from labkit.errors import ConfigError
-from labkit.sim._pty import ProtocolHandler, PtySerialSimulator, Reply, Wait
+from labkit.sim._pty import ProtocolHandler, Reply, SliderSimulator, Wait
 
 __all__ = ["FW102CHandler", "FW102CSimulator"]
 
@@ -253,7 +253,7 @@ class FW102CHandler(ProtocolHandler):
             return "ok", ""
 
 
-class FW102CSimulator(PtySerialSimulator):
+class FW102CSimulator(SliderSimulator):
     """A Thorlabs FW102C/FW212C filter wheel on a pseudo-terminal (115200 8N1, CR).
 
     Parameters
@@ -334,15 +334,6 @@ class FW102CSimulator(PtySerialSimulator):
     def speed(self) -> int:
         """Speed mode: 0 slow, 1 high."""
         return self.handler.speed
-
-    @property
-    def on_move(self) -> Callable[[int], None] | None:
-        """Callback invoked with the new position after each completed move."""
-        return self.handler.on_move
-
-    @on_move.setter
-    def on_move(self, callback: Callable[[int], None] | None) -> None:
-        self.handler.on_move = callback
 
     def move_time(self, start: int, target: int, speed: int | None = None) -> float:
         """Duration of a move, s (see :meth:`FW102CHandler.move_time`)."""
