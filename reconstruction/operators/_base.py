@@ -8,6 +8,7 @@ and the dot test live here so each operator module holds only its own algebra.
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -16,7 +17,7 @@ import numpy as np
 from labkit.errors import DataError
 
 
-class LinearOperator:
+class LinearOperator(ABC):
     """A linear map between arrays of fixed shapes.
 
     Subclasses implement :meth:`_forward` and :meth:`_adjoint` on arrays already checked
@@ -47,11 +48,13 @@ class LinearOperator:
         """Aᵀ y for an array `y` of :attr:`range_shape`."""
         return self._adjoint(self._checked(y, self.range_shape, "adjoint"))
 
+    @abstractmethod
     def _forward(self, x: np.ndarray) -> np.ndarray:
-        raise NotImplementedError
+        """A x on an array already checked to be of :attr:`domain_shape`."""
 
+    @abstractmethod
     def _adjoint(self, y: np.ndarray) -> np.ndarray:
-        raise NotImplementedError
+        """Aᵀ y on an array already checked to be of :attr:`range_shape`."""
 
     def _checked(self, array: np.ndarray, shape: tuple[int, ...], what: str) -> np.ndarray:
         array = np.asarray(array)
