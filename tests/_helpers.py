@@ -90,3 +90,31 @@ def write_rig(folder: Path, base: Path, **changes: object) -> Path:
     path = folder / "rig.yaml"
     path.write_text(yaml.safe_dump(data))
     return path
+
+
+def planted_dispersion_model(
+    fields: dict,
+    *,
+    shape: tuple[int, int],
+    direction: str,
+    wavelength_span: tuple[float, float] | None = None,
+):
+    """A DispersionModel over planted test fields, calibrated over the whole image.
+
+    ``{"spectral": field}`` gives a spectral model referenced to 600 nm whose region spans
+    `wavelength_span`; channel fields (``"R"``, ``"B"``) give a colour model referenced to G.
+    """
+    from calibration.dispersion_model import CalibratedRegion, DispersionModel
+
+    x, y = np.meshgrid([0.0, shape[1] - 1.0], [0.0, shape[0] - 1.0])
+    spectral = "spectral" in fields
+    wavelengths = np.array(wavelength_span) if spectral else None
+    return DispersionModel(
+        type="test",
+        variables="xylambda" if spectral else "xy",
+        direction=direction,
+        reference=600.0 if spectral else "G",
+        image_shape=shape,
+        fields=fields,
+        region=CalibratedRegion.from_points(x, y, wavelengths),
+    )

@@ -8,9 +8,10 @@ from typing import Any
 
 import numpy as np
 import pytest
+from _helpers import planted_dispersion_model
 from skimage.registration import phase_cross_correlation
 
-from calibration.dispersion_model import CalibratedRegion, DispersionModel
+from calibration.dispersion_model import DispersionModel
 from calibration.warp import _model_field, correct_channels, correct_spectral, warp
 from labkit.errors import DataError
 from labkit.sim import Lens
@@ -75,30 +76,13 @@ class LinearField:
 def spectral_model(
     field: LinearField, *, direction: str = "from_reference", shape=SHAPE
 ) -> DispersionModel:
-    corners = np.array([0.0, shape[1] - 1.0])
-    x, y = np.meshgrid(corners, np.array([0.0, shape[0] - 1.0]))
-    return DispersionModel(
-        type="test",
-        variables="xylambda",
-        direction=direction,
-        reference=600.0,
-        image_shape=shape,
-        fields={"spectral": field},
-        region=CalibratedRegion.from_points(x, y, np.array([450.0, 650.0])),
+    return planted_dispersion_model(
+        {"spectral": field}, shape=shape, direction=direction, wavelength_span=(450.0, 650.0)
     )
 
 
 def channel_model(fields: dict[str, LinearField], *, direction: str = "from_reference"):
-    x, y = np.meshgrid([0.0, SHAPE[1] - 1.0], [0.0, SHAPE[0] - 1.0])
-    return DispersionModel(
-        type="test",
-        variables="xy",
-        direction=direction,
-        reference="G",
-        image_shape=SHAPE,
-        fields=fields,
-        region=CalibratedRegion.from_points(x, y),
-    )
+    return planted_dispersion_model(fields, shape=SHAPE, direction=direction)
 
 
 def residual_shift(reference: np.ndarray, image: np.ndarray) -> float:

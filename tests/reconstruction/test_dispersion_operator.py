@@ -7,9 +7,10 @@ from typing import Any
 
 import numpy as np
 import pytest
+from _helpers import planted_dispersion_model
 from scipy.ndimage import map_coordinates
 
-from calibration.dispersion_model import CalibratedRegion, DispersionModel
+from calibration.dispersion_model import DispersionModel
 from calibration.keypoints import DispersionKeypoints
 from calibration.polynomial import fit_polynomial_model
 from labkit.errors import DataError
@@ -73,29 +74,13 @@ class RadialField:
 def spectral_model(
     field: Any, *, direction: str = "to_reference", shape: tuple[int, int] = SHAPE
 ) -> DispersionModel:
-    x, y = np.meshgrid([0.0, shape[1] - 1.0], [0.0, shape[0] - 1.0])
-    return DispersionModel(
-        type="test",
-        variables="xylambda",
-        direction=direction,
-        reference=600.0,
-        image_shape=shape,
-        fields={"spectral": field},
-        region=CalibratedRegion.from_points(x, y, np.array([400.0, 700.0])),
+    return planted_dispersion_model(
+        {"spectral": field}, shape=shape, direction=direction, wavelength_span=(400.0, 700.0)
     )
 
 
 def channel_model(fields: dict[str, Any], *, direction: str = "to_reference") -> DispersionModel:
-    x, y = np.meshgrid([0.0, SHAPE[1] - 1.0], [0.0, SHAPE[0] - 1.0])
-    return DispersionModel(
-        type="test",
-        variables="xy",
-        direction=direction,
-        reference="G",
-        image_shape=SHAPE,
-        fields=fields,
-        region=CalibratedRegion.from_points(x, y),
-    )
+    return planted_dispersion_model(fields, shape=SHAPE, direction=direction)
 
 
 # -- 1. adjoint -------------------------------------------------------------------------
