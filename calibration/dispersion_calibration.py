@@ -198,7 +198,8 @@ def _filtered_images(
         reason = ""
         if band is None and bands is not None:
             reason = "not in the rig; labelled with its nominal wavelength"
-        if purity is not None and purity < min_purity:
+        used = purity is None or purity >= min_purity
+        if not used:
             reason = (
                 f"only {purity:.0%} of its signal is in-band (effective {wavelength:.1f} nm); "
                 f"out-of-band leakage dominates"
@@ -209,7 +210,6 @@ def _filtered_images(
                     "choose another --reference or lower --min-purity"
                 )
             warnings.append(f"band {image.illumination} left out: {reason}")
-        used = not (purity is not None and purity < min_purity)
         table.append(
             BandUse(
                 image.illumination,
