@@ -46,6 +46,9 @@ class Dispersion(LinearOperator):
         full-image pixels (x = column, y = row, pixel centres at integers).
     shape : (rows, cols), optional
         Patch size, px; default: from `origin` to the end of the model's image.
+    overhang_px : int, optional
+        How far the patch may reach beyond the model's image on each side, px (the
+        model is extrapolated there); the patch-wise driver pads the image by this much.
 
     Attributes
     ----------
@@ -55,6 +58,9 @@ class Dispersion(LinearOperator):
     max_shift_px : float
         Largest displacement length |e| over the patch's pixels and the bands, px; a
         value well below 0.1 px means Φ could be skipped.
+    mean_displacement_px : ndarray (n, 2)
+        Mean displacement (e_x, e_y) of each band over the patch, px: the translation
+        that best approximates the band's Φ (the FFT preconditioner uses it).
     wavelengths_nm : ndarray (n,) or None
     channels : tuple of str or None
         ``("R", "G", "B")`` for a colour-channel model.
@@ -85,14 +91,18 @@ class Dispersion(LinearOperator):
         *,
         origin: tuple[int, int] = (0, 0),
         shape: tuple[int, int] | None = None,
+        overhang_px: int = 0,
+        boundary: str = "clamp",
     ) -> None:
+        if boundary not in ("clamp", "periodic"):
+            raise DataError(f"unknown boundary {boundary!r}; use 'clamp' or 'periodic'")
         if model.direction != "to_reference":
             raise DataError(
                 "the dispersion operator Φ needs a to_reference dispersion model (band "
                 f"position → reference position); this one is {model.direction}: "
                 "calibrate with `labkit calibrate dispersion --direction to_reference`"
             )
-        row0, col0, rows, cols = _patch(model, origin, shape)
+        row0, col0, rows, cols = _patch(model, origin, shape, overhang_px)
         if model.variables == "xylambda":
             if wavelengths_nm is None:
                 raise DataError("a spectral dispersion model needs the bands' wavelengths_nm")
@@ -130,13 +140,16 @@ class Dispersion(LinearOperator):
         yy, xx = np.mgrid[0:rows, 0:cols].astype(np.float64)
         self.matrices: list[sp.csr_matrix] = []
         max_shift = 0.0
+        means = []
         for band in bands:
             ex, ey = model.displacement(xx + col0, yy + row0, **band)
             if not (np.all(np.isfinite(ex)) and np.all(np.isfinite(ey))):
                 raise DataError(f"the dispersion model gives NaN or Inf displacements at {band}")
             max_shift = max(max_shift, float(np.sqrt(np.max(ex * ex + ey * ey))))
-            self.matrices.append(_bilinear_matrix(xx + ex, yy + ey, rows, cols))
+            means.append((float(np.mean(ex)), float(np.mean(ey))))
+            self.matrices.append(_bilinear_matrix(xx + ex, yy + ey, rows, cols, boundary))
         self.max_shift_px = max_shift
+        self.mean_displacement_px = np.array(means, dtype=np.float64).reshape(-1, 2)
 
     def _forward(self, x: np.ndarray) -> np.ndarray:
         return self._apply(x, transpose=False)
@@ -155,22 +168,29 @@ class Dispersion(LinearOperator):
 
 
 def _patch(
-    model: DispersionModel, origin: tuple[int, int], shape: tuple[int, int] | None
+    model: DispersionModel,
+    origin: tuple[int, int],
+    shape: tuple[int, int] | None,
+    overhang_px: int = 0,
 ) -> tuple[int, int, int, int]:
-    """(row0, col0, rows, cols) of a patch checked to lie inside the model's image."""
+    """(row0, col0, rows, cols) of a patch checked to lie inside the model's image.
+
+    The image is widened by `overhang_px` on every side before the check.
+    """
     image_rows, image_cols = (int(n) for n in model.image_shape)
+    m = int(overhang_px)
     row0, col0 = (int(v) for v in origin)
     if shape is None:
         rows, cols = image_rows - row0, image_cols - col0
     else:
         rows, cols = (int(n) for n in shape)
     if (
-        row0 < 0
-        or col0 < 0
+        row0 < -m
+        or col0 < -m
         or rows < 1
         or cols < 1
-        or row0 + rows > image_rows
-        or col0 + cols > image_cols
+        or row0 + rows > image_rows + m
+        or col0 + cols > image_cols + m
     ):
         raise DataError(
             f"patch at origin (row, col) = ({row0}, {col0}) with shape ({rows}, {cols}) is not "
@@ -180,13 +200,24 @@ def _patch(
     return row0, col0, rows, cols
 
 
-def _bilinear_matrix(sx: np.ndarray, sy: np.ndarray, rows: int, cols: int) -> sp.csr_matrix:
-    """CSR matrix sampling a (rows, cols) image bilinearly at (sx, sy), clamped to the border.
+def _bilinear_matrix(
+    sx: np.ndarray, sy: np.ndarray, rows: int, cols: int, boundary: str = "clamp"
+) -> sp.csr_matrix:
+    """CSR matrix sampling a (rows, cols) image bilinearly at (sx, sy).
 
     Row i·cols + j of the matrix holds the four bilinear weights of the sample point of
-    output pixel (i, j); sample points outside [0, cols − 1] × [0, rows − 1] are moved to
-    the nearest point of that rectangle.
+    output pixel (i, j). With ``boundary="clamp"`` sample points outside
+    [0, cols − 1] × [0, rows − 1] are moved to the nearest point of that rectangle; with
+    ``"periodic"`` neighbour indices wrap around.
     """
+    if boundary == "periodic":
+        x0 = np.floor(sx.ravel()).astype(np.int64)
+        y0 = np.floor(sy.ravel()).astype(np.int64)
+        fx = sx.ravel() - x0
+        fy = sy.ravel() - y0
+        x0, y0 = x0 % cols, y0 % rows
+        x1, y1 = (x0 + 1) % cols, (y0 + 1) % rows
+        return _csr(x0, x1, y0, y1, fx, fy, rows, cols)
     sx = np.clip(sx.ravel(), 0.0, cols - 1.0)
     sy = np.clip(sy.ravel(), 0.0, rows - 1.0)
     x0 = np.clip(np.floor(sx).astype(np.int64), 0, max(cols - 2, 0))
@@ -195,6 +226,11 @@ def _bilinear_matrix(sx: np.ndarray, sy: np.ndarray, rows: int, cols: int) -> sp
     y1 = np.minimum(y0 + 1, rows - 1)
     fx = sx - x0  # in [0, 1]; 0 when cols == 1
     fy = sy - y0
+    return _csr(x0, x1, y0, y1, fx, fy, rows, cols)
+
+
+def _csr(x0, x1, y0, y1, fx, fy, rows: int, cols: int) -> sp.csr_matrix:
+    """The bilinear sampling matrix from corner indices and fractions (one row per pixel)."""
     indices = np.stack([y0 * cols + x0, y0 * cols + x1, y1 * cols + x0, y1 * cols + x1], axis=1)
     weights = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], axis=1)
     n = rows * cols
@@ -220,6 +256,7 @@ def dispersion_samples(
     shape: tuple[int, int] | None = None,
     min_count: int,
     step_px: float = 0.1,
+    overhang_px: int = 0,
 ) -> np.ndarray:
     """Wavelengths at which to sample dispersion for a patch (thesis §3.2.5).
 
@@ -248,6 +285,9 @@ def dispersion_samples(
     step_px : float
         Largest shift between consecutive samples aimed for, px (thesis: 0.1, the
         perceptibility limit of Rudakova and Monasse).
+    overhang_px : int
+        How far the patch may reach beyond the model's image, px (as for
+        :class:`Dispersion`).
 
     Returns
     -------
@@ -276,7 +316,7 @@ def dispersion_samples(
         raise DataError(f"min_count must be at least 1, got {min_count}")
     if not (np.isfinite(step_px) and step_px > 0):
         raise DataError(f"step_px must be positive, got {step_px}")
-    row0, col0, rows, cols = _patch(model, origin, shape)
+    row0, col0, rows, cols = _patch(model, origin, shape, overhang_px)
     # quadrant centres of the patch's pixel area [−0.5, n − 0.5], full-image px
     qx = col0 - 0.5 + cols * np.array([0.25, 0.75, 0.25, 0.75])
     qy = row0 - 0.5 + rows * np.array([0.25, 0.25, 0.75, 0.75])

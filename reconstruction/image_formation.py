@@ -1,0 +1,353 @@
+"""The image formation operator A = M·Ω·Φ·B of problem (3.1), and its direct-colour form (3.27).
+
+:class:`LatentSpace` says what the unknown image holds and how it becomes raw colour:
+
+* ``kind="spectral"`` — coefficients of the spectral basis B at band centres (3.1). Ω
+  integrates the spectrum ``B(I)`` against the camera response on the response's own
+  (fine) wavelength grid by the trapezoid rule (3.6), extrapolating B as the thesis does.
+* ``kind="colour"`` — the raw colour channels R, G, B themselves (3.27).
+
+Either may carry a per-channel scale ``r`` (thesis §6.3, (6.1)): the unknown is then
+``J = I / r`` and the priors act on J, which equalises how strongly bright and dark bands
+are smoothed.
+
+Dispersion is sampled at a few wavelengths λ_j (thesis §3.2.5; see
+:func:`~reconstruction.operators.dispersion_samples`) and interpolated linearly in λ between
+them: the band operator at a response wavelength f is ``Σ_j h_j(f) Φ_j`` with hat
+functions h_j (constant beyond the ends). The colour integral therefore splits into one
+(3 × n) matrix per sample, ``C_j = Σ_f Ω(f) h_j(f) B(f, ·)``, with ``Σ_j C_j`` equal to the
+dispersion-free colour matrix, and
+
+    raw = M Σ_j Φ_j (I C_jᵀ).
+
+Compared with the thesis, which integrates the spectrum over the Φ samples themselves,
+this keeps the colour integral as accurate as the response's sampling whatever the number
+of Φ samples, and makes a patch whose Φ is dropped see exactly the same colours. M and all
+Φ_j are folded into one sparse matrix (four bilinear weights per raw pixel and sample).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Literal
+
+import numpy as np
+import scipy.sparse as sp
+
+from calibration.dispersion_model import DispersionModel
+from labkit.cfa import CHANNELS, channel_index, check_layout
+from labkit.errors import DataError
+from labkit.spectra import Spectra, trapezoid_weights
+from reconstruction.operators import Dispersion, LinearOperator, SpectralBasis, dispersion_samples
+from reconstruction.operators.basis import choose_bands
+
+
+@dataclass(frozen=True, eq=False)
+class LatentSpace:
+    """What the latent image holds, and its map to raw colour.
+
+    Attributes
+    ----------
+    kind : {"spectral", "colour"}
+    centres_nm : ndarray (n,) or None
+        Band centres of a spectral latent image, nm.
+    response : Spectra or None
+        Camera response R, G, B (spectral kind).
+    kernel : {"gaussian", "sinc"}
+        Kernel of the spectral basis B.
+    scale : ndarray (n,)
+        Per-channel scale r of the §6.3 variant (ones for the plain problem).
+    support_nm : (float, float) or None
+        Where the camera is sensitive (≥ 5 % of a channel's peak), nm: the range over
+        which dispersion is sampled.
+    """
+
+    kind: Literal["spectral", "colour"]
+    centres_nm: np.ndarray | None = None
+    response: Spectra | None = None
+    kernel: str = "gaussian"
+    scale: np.ndarray = field(default_factory=lambda: np.ones(3))
+    support_nm: tuple[float, float] | None = None
+
+    @classmethod
+    def spectral(
+        cls, response: Spectra, centres_nm: np.ndarray | None = None, *, kernel: str = "gaussian"
+    ) -> LatentSpace:
+        """Spectral latent space: bands from :func:`choose_bands` unless `centres_nm` given."""
+        response = _rgb(response)
+        selection = choose_bands(response)
+        centres = selection.centres_nm if centres_nm is None else np.asarray(centres_nm, float)
+        if centres.ndim != 1 or centres.size < 2:
+            raise DataError(f"need ≥ 2 band centres (nm), got {centres!r}")
+        lo, hi = response.domain
+        if centres[0] < lo or centres[-1] > hi:
+            raise DataError(
+                f"the bands {centres[0]:g}–{centres[-1]:g} nm are not covered by the camera "
+                f"response ({lo:g}–{hi:g} nm); choose bands inside the response or supply a "
+                "response measured over them"
+            )
+        SpectralBasis((1, 1), centres, centres, kernel=kernel)  # validates spacing etc.
+        support = (
+            min(selection.support_nm[0], centres[0]),
+            max(selection.support_nm[1], centres[-1]),
+        )
+        return cls("spectral", centres, response, kernel, np.ones(centres.size), support)
+
+    @classmethod
+    def colour(cls) -> LatentSpace:
+        """Direct colour estimation (3.27): the latent image is raw R, G, B."""
+        return cls("colour")
+
+    @property
+    def channels(self) -> int:
+        return 3 if self.kind == "colour" else int(self.centres_nm.size)
+
+    def with_scale(self, scale: np.ndarray) -> LatentSpace:
+        """The same space with per-channel scale r (§6.3): unknown J = I / r."""
+        scale = np.asarray(scale, dtype=np.float64)
+        if scale.shape != (self.channels,) or not np.all(np.isfinite(scale)) or np.any(scale <= 0):
+            raise DataError(f"scale must be {self.channels} positive finite values, got {scale!r}")
+        return replace(self, scale=scale)
+
+    def colour_matrix(self) -> np.ndarray:
+        """Ω·B (3 × n): latent image → raw colour without dispersion (scale included)."""
+        return self.colour_matrices(None)[0]
+
+    def colour_matrices(self, samples_nm: np.ndarray | None) -> np.ndarray:
+        """Per-sample colour matrices C_j (J, 3, n); J = 1 without dispersion samples."""
+        if self.kind == "colour":
+            if samples_nm is not None:
+                raise DataError("direct colour estimation has no wavelength samples")
+            return (np.eye(3) * self.scale[None, :])[None]
+        fine = self.response.wavelengths
+        weights = self.response.values * trapezoid_weights(fine)[:, None]  # (f, 3)
+        basis = SpectralBasis((1, 1), self.centres_nm, fine, kernel=self.kernel).matrix  # (f, n)
+        basis = basis * self.scale[None, :]
+        if samples_nm is None:
+            return (weights.T @ basis)[None]
+        hats = _hat_weights(fine, np.asarray(samples_nm, dtype=np.float64))  # (J, f)
+        return np.einsum("fc,jf,fn->jcn", weights, hats, basis)
+
+    def spectral_values(self, latent: np.ndarray) -> np.ndarray:
+        """The spectrum at the band centres, ``B(r ⊙ J)`` at ``centres_nm`` (…, n)."""
+        scaled = latent * self.scale
+        if self.kind == "colour":
+            return scaled
+        at_centres = SpectralBasis((1, 1), self.centres_nm, self.centres_nm, kernel=self.kernel)
+        return scaled @ at_centres.matrix.T
+
+    def raw_colour(self, latent: np.ndarray) -> np.ndarray:
+        """The latent image in raw colour (…, 3), without dispersion."""
+        return latent @ self.colour_matrix().T
+
+
+def _rgb(response: Spectra) -> Spectra:
+    if set(CHANNELS) <= set(response.labels):
+        return response.select(list(CHANNELS))
+    if response.values.shape[1] != 3:
+        raise DataError(
+            "camera response needs channels R, G, B (or exactly three); got "
+            f"{list(response.labels)}"
+        )
+    return response
+
+
+def _hat_weights(grid: np.ndarray, samples: np.ndarray) -> np.ndarray:
+    """Linear-interpolation weights h_j(f) (J, f), constant beyond the end samples."""
+    if samples.size == 1:
+        return np.ones((1, grid.size))
+    eye = np.eye(samples.size)
+    return np.stack([np.interp(grid, samples, row) for row in eye])
+
+
+class ImageFormation(LinearOperator):
+    """A: latent image (rows, cols, n) → raw mosaic (rows, cols).
+
+    Parameters
+    ----------
+    shape : (rows, cols)
+        Patch size, px.
+    cfa : str
+        Bayer layout of the patch's top-left pixel.
+    colour_matrices : ndarray (J, 3, n)
+        Per-dispersion-sample colour matrices C_j (J = 1 without dispersion).
+    dispersion : Dispersion, optional
+        Φ sampled at J wavelengths (or on the 3 colour channels); None for no dispersion.
+
+    Attributes
+    ----------
+    mean_shifts_px : ndarray (J, 2) or None
+        Mean displacement of each sample over the patch (for the FFT preconditioner).
+    """
+
+    name = "A"
+
+    def __init__(
+        self,
+        shape: tuple[int, int],
+        cfa: str,
+        colour_matrices: np.ndarray,
+        dispersion: Dispersion | None = None,
+    ) -> None:
+        rows, cols = (int(n) for n in shape)
+        colour_matrices = np.asarray(colour_matrices, dtype=np.float64)
+        if colour_matrices.ndim != 3 or colour_matrices.shape[1] != 3:
+            raise DataError(f"colour matrices must be (J, 3, n), got {colour_matrices.shape}")
+        n = colour_matrices.shape[2]
+        super().__init__((rows, cols, n), (rows, cols))
+        self.cfa = check_layout(cfa)
+        self.colour_matrices = colour_matrices
+        self.channel_index = channel_index(self.cfa, (rows, cols)).astype(np.intp)
+        self.dispersion = dispersion
+        self.mean_shifts_px = None
+        self._matrix = self._matrix_t = None
+        if dispersion is not None:
+            if dispersion.patch_shape != (rows, cols):
+                raise DataError("Φ's patch shape differs from the image formation's")
+            if len(dispersion.matrices) != colour_matrices.shape[0]:
+                raise DataError(
+                    f"{len(dispersion.matrices)} dispersion samples but "
+                    f"{colour_matrices.shape[0]} colour matrices"
+                )
+            self.mean_shifts_px = dispersion.mean_displacement_px
+            self._matrix = self._combined(dispersion.matrices)
+            self._matrix_t = self._matrix.T.tocsr()
+        elif colour_matrices.shape[0] != 1:
+            raise DataError("without dispersion there must be exactly one colour matrix")
+
+    @property
+    def colour_matrix(self) -> np.ndarray:
+        """Σ_j C_j (3 × n): the colour matrix of the same patch without dispersion."""
+        return self.colour_matrices.sum(axis=0)
+
+    def without_dispersion(self) -> ImageFormation:
+        """The same A with Φ = identity."""
+        return ImageFormation(self.domain_shape[:2], self.cfa, self.colour_matrix[None])
+
+    def _combined(self, matrices: list[sp.csr_matrix]) -> sp.csr_matrix:
+        """M Σ_j Φ_j as one (rows·cols) × (J·rows·cols·3) matrix on stacked colour images."""
+        npx = int(np.prod(self.domain_shape[:2]))
+        channel = self.channel_index.ravel()
+        rows_all, cols_all, data_all = [], [], []
+        for j, matrix in enumerate(matrices):
+            counts = np.diff(matrix.indptr)
+            rows = np.repeat(np.arange(npx), counts)
+            rows_all.append(rows)
+            cols_all.append(j * 3 * npx + 3 * matrix.indices.astype(np.int64) + channel[rows])
+            data_all.append(matrix.data)
+        return sp.csr_matrix(
+            (np.concatenate(data_all), (np.concatenate(rows_all), np.concatenate(cols_all))),
+            shape=(npx, len(matrices) * 3 * npx),
+        )
+
+    def _forward(self, x: np.ndarray) -> np.ndarray:
+        x = x.astype(np.float64, copy=False)
+        if self._matrix is None:
+            colour = x @ self.colour_matrices[0].T
+            return np.take_along_axis(colour, self.channel_index[..., None], axis=2)[..., 0]
+        stacked = np.einsum("yxn,jcn->jyxc", x, self.colour_matrices, optimize=True)
+        return (self._matrix @ stacked.ravel()).reshape(self.range_shape)
+
+    def _adjoint(self, y: np.ndarray) -> np.ndarray:
+        y = y.astype(np.float64, copy=False)
+        rows, cols = self.range_shape
+        if self._matrix is None:
+            colour = np.zeros((rows, cols, 3))
+            np.put_along_axis(colour, self.channel_index[..., None], y[..., None], axis=2)
+            return colour @ self.colour_matrices[0]
+        stacked = (self._matrix_t @ y.ravel()).reshape(-1, rows, cols, 3)
+        return np.einsum("jyxc,jcn->yxn", stacked, self.colour_matrices, optimize=True)
+
+    def fourier_colour(self) -> np.ndarray:
+        """Colour matrix per spatial frequency for the FFT solver.
+
+        Without Φ: the constant (3, n) matrix. With Φ: (rows, cols, 3, n) complex,
+        ``Σ_j φ_j(k) C_j`` where φ_j is the DFT symbol of a bilinear translation by sample
+        j's mean displacement — exact when Φ_j is that translation (with wrap-around).
+        """
+        if self.mean_shifts_px is None:
+            return self.colour_matrices[0]
+        rows, cols = self.range_shape
+        symbols = np.stack(
+            [_translation_symbol(dx, dy, rows, cols) for dx, dy in self.mean_shifts_px]
+        )  # (J, rows, cols)
+        return np.einsum("jyx,jcn->yxcn", symbols, self.colour_matrices, optimize=True)
+
+
+def _translation_symbol(dx: float, dy: float, rows: int, cols: int) -> np.ndarray:
+    """DFT multiplier of ``out(q) = bilinear sample of x at q + (dx, dy)`` (periodic)."""
+
+    def axis(shift: float, n: int) -> np.ndarray:
+        whole = np.floor(shift)
+        frac = shift - whole
+        phase = np.exp(2j * np.pi * np.arange(n) / n)
+        return (1 - frac) * phase**whole + frac * phase ** (whole + 1)
+
+    return axis(dy, rows)[:, None] * axis(dx, cols)[None, :]
+
+
+def build_formation(
+    latent: LatentSpace,
+    shape: tuple[int, int],
+    cfa: str,
+    *,
+    model: DispersionModel | None = None,
+    origin: tuple[int, int] = (0, 0),
+    overhang_px: int = 0,
+    step_px: float = 0.1,
+    colour_gain: float = 1.0,
+) -> ImageFormation:
+    """A for one patch: colour matrices of `latent`, and Φ from `model` if given.
+
+    Parameters
+    ----------
+    latent : LatentSpace
+    shape : (rows, cols)
+        Patch size, px.
+    cfa : str
+        Bayer layout at the patch's top-left pixel.
+    model : DispersionModel, optional
+        A ``to_reference`` model: spectral (``xylambda``) for a spectral latent space,
+        colour-channel (``xy``, reference G) for a colour one.
+    origin : (row0, col0)
+        Full-image pixel of the patch's top-left pixel, px.
+    overhang_px : int
+        How far a padded patch may reach beyond the model's image, px.
+    step_px : float
+        Largest shift between consecutive dispersion samples, px (§3.2.5: 0.1).
+    colour_gain : float
+        Factor on every colour matrix (the driver's normalisation, 1 / q_max).
+    """
+    if model is None:
+        return ImageFormation(shape, cfa, colour_gain * latent.colour_matrices(None))
+    if latent.kind == "colour":
+        if model.variables != "xy":
+            raise DataError(
+                "direct colour estimation needs a colour-channel dispersion model "
+                "(`labkit calibrate dispersion --reference G`), not a spectral one"
+            )
+        phi = Dispersion(
+            model, None, origin=origin, shape=shape, overhang_px=overhang_px, boundary="periodic"
+        )
+        selectors = np.zeros((3, 3, 3))
+        for c in range(3):
+            selectors[c, c, c] = colour_gain * latent.scale[c]
+        return ImageFormation(shape, cfa, selectors, phi)
+    if model.variables != "xylambda":
+        raise DataError(
+            "spectral reconstruction needs a spectral (xylambda) dispersion model; a "
+            "colour-channel model suits direct colour estimation (--latent colour)"
+        )
+    samples = dispersion_samples(
+        model,
+        latent.support_nm,
+        origin=origin,
+        shape=shape,
+        min_count=2,
+        step_px=step_px,
+        overhang_px=overhang_px,
+    )
+    phi = Dispersion(
+        model, samples, origin=origin, shape=shape, overhang_px=overhang_px, boundary="periodic"
+    )
+    return ImageFormation(shape, cfa, colour_gain * latent.colour_matrices(samples), phi)

@@ -1,0 +1,414 @@
+"""`reconstruct`: a spectral (or colour) image from one Bayer raw image (thesis ch. 3).
+
+Steps: validate everything (before any heavy work) → normalise → optionally fit the §6.3
+reference spectrum → choose weights on representative patches (Algorithm 3, without
+dispersion) → solve every patch on Dask → undo the normalisation → spectrum at the band
+centres, raw colour image and a log.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import nnls
+
+from calibration.dispersion_model import DispersionModel, load_dispersion_model
+from labkit.cfa import channel_index, check_layout
+from labkit.errors import DataError
+from labkit.spectra import Spectra
+from reconstruction.image_formation import LatentSpace, build_formation
+from reconstruction.patches import (
+    PatchOptions,
+    SolverOptions,
+    max_dispersion,
+    reconstruct_patches,
+    texture,
+)
+from reconstruction.prior_terms import prior_terms
+from reconstruction.problem import Problem
+from reconstruction.solvers.admm import DEFAULT_RTOL, absolute_tolerance
+from reconstruction.weights import CRITERIA, select_weights
+
+REFERENCE_SMOOTHING = 1e-2
+"""Weight w of (6.1)'s spectral-gradient penalty, relative to ‖C‖² (normalised units)."""
+
+
+@dataclass
+class Reconstruction:
+    """Result of :func:`reconstruct`.
+
+    Attributes
+    ----------
+    spectral : ndarray (rows, cols, n) float32
+        Spectrum at the band centres (spectral latent space) or raw colour R, G, B
+        (colour latent space), in the raw image's units per nm (per channel for colour).
+    wavelengths_nm : ndarray (n,) or None
+        Band centres, nm (None for the colour latent space).
+    raw_colour : ndarray (rows, cols, 3) float32
+        The latent image in the camera's raw colour space, aberration-free, raw units.
+    latent : LatentSpace
+    log : dict
+        Weights, normalisation, timings, per-patch records (JSON-ready).
+    """
+
+    spectral: np.ndarray
+    wavelengths_nm: np.ndarray | None
+    raw_colour: np.ndarray
+    latent: LatentSpace
+    log: dict = field(default_factory=dict)
+
+
+def parse_weights(
+    weights: str | Sequence[float], count: int
+) -> tuple[str, tuple[float, ...] | None]:
+    """``"auto:dmc"`` → ("dmc", None); ``"fixed:0.1,0.2"`` or a sequence → ("fixed", values)."""
+    if isinstance(weights, str):
+        kind, _, rest = weights.partition(":")
+        if kind == "auto":
+            if rest not in CRITERIA:
+                raise DataError(
+                    f"unknown weight criterion {rest!r} in {weights!r}; use auto:dmc, auto:mdc "
+                    "or auto:msec"
+                )
+            return rest, None
+        if kind != "fixed":
+            raise DataError(
+                f"weights {weights!r}: use auto:dmc|auto:mdc|auto:msec or fixed:W1[,W2]"
+            )
+        try:
+            values = tuple(float(v) for v in rest.split(","))
+        except ValueError:
+            raise DataError(f"weights {weights!r}: fixed weights must be numbers") from None
+    else:
+        values = tuple(float(v) for v in weights)
+    if len(values) != count:
+        raise DataError(f"the prior has {count} term(s) but {len(values)} weight(s) were given")
+    if any(not np.isfinite(v) or v < 0 for v in values):
+        raise DataError(f"weights must be finite and ≥ 0, got {values}")
+    return "fixed", values
+
+
+def _check_raw(raw: np.ndarray) -> np.ndarray:
+    raw = np.asarray(raw)
+    if raw.ndim != 2:
+        raise DataError(f"the raw image must be a 2-D Bayer mosaic, got shape {raw.shape}")
+    if raw.shape[0] % 2 or raw.shape[1] % 2:
+        raise DataError(
+            f"the raw image is {raw.shape[0]}×{raw.shape[1]} px; a Bayer mosaic needs an even "
+            "number of rows and columns: crop one row/column (keeping the CFA phase)"
+        )
+    if min(raw.shape) < 8:
+        raise DataError(f"the raw image ({raw.shape}) is too small to reconstruct (≥ 8×8 px)")
+    bad = ~np.isfinite(raw)
+    if bad.any():
+        where = np.argwhere(bad)[0]
+        raise DataError(
+            f"the raw image has {int(bad.sum())} NaN/Inf pixel(s), first at (row, col) = "
+            f"({where[0]}, {where[1]}); repair or mask them before reconstruction"
+        )
+    return raw.astype(np.float64)
+
+
+def _check_model(model: DispersionModel | str | Path | None, shape, latent: LatentSpace):
+    if model is None:
+        return None
+    if not isinstance(model, DispersionModel):
+        model = load_dispersion_model(model)
+    if tuple(model.image_shape) != tuple(shape):
+        raise DataError(
+            f"the dispersion model was calibrated for {model.image_shape[0]}×"
+            f"{model.image_shape[1]} px images but the raw image is {shape[0]}×{shape[1]} px; "
+            "use a model calibrated with this camera and image size"
+        )
+    if model.direction != "to_reference":
+        raise DataError(
+            "reconstruction needs a to_reference dispersion model; recalibrate with "
+            "`labkit calibrate dispersion --direction to_reference`"
+        )
+    wanted = "xylambda" if latent.kind == "spectral" else "xy"
+    if model.variables != wanted:
+        raise DataError(
+            f"a {latent.kind} reconstruction needs a {wanted} dispersion model, this one is "
+            f"{model.variables}"
+        )
+    return model
+
+
+def reference_scale(raw: np.ndarray, cfa: str, colour: np.ndarray) -> np.ndarray:
+    """Per-channel scale r of §6.3: a smooth non-negative spectrum with the image's mean colour.
+
+    Solves (6.1), ``argmin_s ‖C s − c‖² + w‖∇λ s‖², s ≥ 0`` with c the mean raw colour
+    (per CFA channel) and w = :data:`REFERENCE_SMOOTHING`·‖C‖², by NNLS on the stacked
+    system. The result is scaled to mean 1 and floored at 1 % of its peak, so every
+    channel keeps a positive scale.
+    """
+    index = channel_index(cfa, raw.shape)
+    mean_colour = np.array([raw[index == c].mean() for c in range(3)])
+    n = colour.shape[1]
+    if n == 3 and np.allclose(colour, np.diag(np.diag(colour))):
+        s = np.maximum(mean_colour / np.diag(colour), 0.0)
+    else:
+        d = np.eye(n - 1, n, 1) - np.eye(n - 1, n)
+        w = REFERENCE_SMOOTHING * float(np.sum(colour**2))
+        s, _ = nnls(
+            np.vstack([colour, np.sqrt(w) * d]), np.concatenate([mean_colour, np.zeros(n - 1)])
+        )
+    if not np.any(s > 0):
+        return np.ones(n)
+    s = np.maximum(s, 0.01 * s.max())
+    return s / s.mean()
+
+
+def representative_patches(raw: np.ndarray, size: int, count: int) -> list[tuple[int, int]]:
+    """Origins (row, col) of the `count` most textured non-overlapping size×size windows."""
+    rows, cols = raw.shape
+    size = min(size, rows - rows % 2, cols - cols % 2)
+    candidates = [
+        (texture(raw[r : r + size, c : c + size]), r, c)
+        for r in range(0, rows - size + 1, size)
+        for c in range(0, cols - size + 1, size)
+    ]
+    candidates.sort(reverse=True)
+    return [(r, c) for _, r, c in candidates[:count]]
+
+
+def reconstruct(
+    raw: np.ndarray,
+    *,
+    cfa: str,
+    response: Spectra | None = None,
+    bands: Sequence[float] | None = None,
+    dispersion: DispersionModel | str | Path | None = None,
+    prior: str = "L2",
+    nonneg: bool = True,
+    weights: str | Sequence[float] = "auto:dmc",
+    latent: str = "spectral",
+    reference: str | None = None,
+    kernel: str = "gaussian",
+    rtol: float = DEFAULT_RTOL,
+    max_iter: int = 1000,
+    patch_px: int = 128,
+    pad_px: int = 16,
+    flat_threshold: float | None = 0.01,
+    weight_patches: Sequence[tuple[int, int]] | int = 1,
+    weight_patch_px: int = 64,
+    truth: np.ndarray | None = None,
+    scheduler: str | object | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> Reconstruction:
+    """Reconstruct an aberration-free spectral image from one Bayer raw image (problem (3.1)).
+
+    Parameters
+    ----------
+    raw : ndarray (rows, cols)
+        Bayer mosaic (e.g. an HDR raw image), even size, finite; any linear units.
+    cfa : str
+        Bayer layout (RGGB, GRBG, GBRG, BGGR).
+    response : Spectra, optional
+        Camera response R, G, B over wavelength; required for ``latent="spectral"``.
+    bands : sequence of float, optional
+        Band centres, nm, equally spaced; default chosen from the response (§3.3.2).
+    dispersion : DispersionModel or path, optional
+        ``to_reference`` model of this camera and image size: spectral for
+        ``latent="spectral"``, colour-channel for ``latent="colour"``. None: no Φ.
+    prior : str
+        A combination of Table 3.1 (``L1``, ``L2``, ``Lap1``, ``Lap2``, ``L1L1``,
+        ``L2L2``, ``L1SpatialLap2``, ``L1SpectralLap2``).
+    nonneg : bool
+        Constrain the latent image to be non-negative.
+    weights : str or sequence of float
+        ``"auto:dmc"`` (default), ``"auto:mdc"``, ``"auto:msec"`` (needs `truth`), or fixed
+        weights (``"fixed:0.01"`` or a sequence), in normalised units.
+    latent : {"spectral", "colour"}
+        Problem (3.1), or direct colour estimation (3.27).
+    reference : {None, "mean-colour"}
+        ``"mean-colour"``: the §6.3 variant (reconstruct relative to a smooth spectrum
+        fitted to the image's mean colour).
+    kernel : {"gaussian", "sinc"}
+        Kernel of the spectral basis.
+    rtol, max_iter : float, int
+        ADMM relative tolerance and iteration limit per patch.
+    patch_px, pad_px : int
+        Patch size and overlap on each side, px (even).
+    flat_threshold : float or None
+        Relative texture below which a patch counts as flat (None: never skip).
+    weight_patches : int or sequence of (row, col)
+        How many representative patches to select weights on (chosen by texture), or
+        their origins.
+    weight_patch_px : int
+        Size of those patches, px (even).
+    truth : ndarray (rows, cols, n), optional
+        True spectral image at the band centres (MSE criterion only; simulation).
+    scheduler : str or distributed.Client, optional
+        Dask scheduler (see :func:`~reconstruction.patches.reconstruct_patches`).
+    progress : callable, optional
+        ``progress(done, total)`` per patch.
+
+    Returns
+    -------
+    Reconstruction
+
+    Raises
+    ------
+    DataError
+        Bad input of any kind, before heavy work starts.
+    """
+    started = time.perf_counter()
+    raw = _check_raw(raw)
+    cfa = check_layout(cfa)
+    if latent == "spectral":
+        if response is None:
+            raise DataError("spectral reconstruction needs the camera response (R, G, B)")
+        space = LatentSpace.spectral(response, bands, kernel=kernel)
+    elif latent == "colour":
+        if bands is not None:
+            raise DataError("direct colour estimation (latent='colour') takes no bands")
+        space = LatentSpace.colour()
+    else:
+        raise DataError(f"unknown latent space {latent!r}; use 'spectral' or 'colour'")
+    terms = prior_terms(prior, channels=space.channels)
+    criterion, fixed = parse_weights(weights, len(terms))
+    if criterion == "msec" and truth is None:
+        raise DataError("weights='auto:msec' needs the true spectral image (truth=...)")
+    if reference not in (None, "mean-colour"):
+        raise DataError(f"unknown reference {reference!r}; use None or 'mean-colour' (§6.3)")
+    model = _check_model(dispersion, raw.shape, space)
+    options = PatchOptions(patch_px=patch_px, pad_px=pad_px, flat_threshold=flat_threshold)
+    if model is not None:
+        reach = max_dispersion(model, space, (0, 0), raw.shape)
+        if reach > pad_px / 2:
+            raise DataError(
+                f"the dispersion model shifts the image by up to {reach:.1f} px, more than half "
+                f"the patch overlap pad_px={pad_px}; raise pad_px"
+            )
+
+    # normalisation: raw to O(1), colour matrices to a largest channel sum of 1
+    raw_scale = float(np.mean(raw))
+    if not raw_scale > 0:
+        raw_scale = max(float(np.max(np.abs(raw))), 1.0)
+    colour_gain = 1.0 / float(space.colour_matrix().sum(axis=1).max())
+    y = raw / raw_scale
+    if reference == "mean-colour":
+        space = space.with_scale(reference_scale(y, cfa, colour_gain * space.colour_matrix()))
+    atol = absolute_tolerance(y, rtol)
+
+    log: dict = {
+        "latent": space.kind,
+        "bands_nm": None if space.centres_nm is None else [float(v) for v in space.centres_nm],
+        "prior": prior,
+        "nonneg": nonneg,
+        "reference": reference,
+        "normalisation": {"raw_scale": raw_scale, "colour_gain": colour_gain},
+        "reference_scale": [float(v) for v in space.scale],
+        "dispersion": None
+        if model is None
+        else {"source": str(getattr(model, "source", "")), "variables": model.variables},
+    }
+
+    t0 = time.perf_counter()
+    if fixed is None:
+        if isinstance(weight_patches, int):
+            origins = representative_patches(y, weight_patch_px, weight_patches)
+        else:
+            origins = [tuple(int(v) for v in o) for o in weight_patches]
+        size = min(weight_patch_px, raw.shape[0], raw.shape[1])
+        problems, truths = [], []
+        for r, c in origins:
+            if (
+                r % 2
+                or c % 2
+                or r < 0
+                or c < 0
+                or r + size > raw.shape[0]
+                or c + size > raw.shape[1]
+            ):
+                raise DataError(
+                    f"weight patch origin ({r}, {c}) must be even and keep a {size}-px patch "
+                    "inside the image"
+                )
+            formation = build_formation(space, (size, size), cfa, colour_gain=colour_gain)
+            problems.append(
+                Problem(
+                    formation, y[r : r + size, c : c + size], terms, (1.0,) * len(terms), nonneg
+                )
+            )
+            if truth is not None:
+                truths.append(
+                    np.asarray(truth, dtype=np.float64)[r : r + size, c : c + size]
+                    / (raw_scale * colour_gain)
+                )
+        truth_matrix = None
+        if criterion == "msec":
+            truth_matrix = _spectral_matrix(space)
+        selection = select_weights(
+            problems, criterion=criterion, truths=truths or None, truth_matrix=truth_matrix
+        )
+        chosen = selection.weights
+        log["weights"] = {
+            "values": list(chosen),
+            "criterion": criterion,
+            "criterion_value": selection.value,
+            "rounds": selection.rounds,
+            "solves": selection.solves,
+            "patches": [list(o) for o in origins],
+            "patch_px": size,
+        }
+    else:
+        chosen = fixed
+        log["weights"] = {"values": list(chosen), "criterion": "fixed"}
+    log["weights"]["seconds"] = time.perf_counter() - t0
+
+    t1 = time.perf_counter()
+    solver = SolverOptions(terms, tuple(chosen), nonneg, rtol, atol, max_iter)
+    latent_norm, records = reconstruct_patches(
+        y,
+        cfa=cfa,
+        latent=space,
+        colour_gain=colour_gain,
+        model=model,
+        solver=solver,
+        options=options,
+        scheduler=scheduler,
+        progress=progress,
+    )
+    log["solve_seconds"] = time.perf_counter() - t1
+    latent_image = latent_norm * (raw_scale * colour_gain)
+    spectral = space.spectral_values(latent_image)
+    raw_colour = space.raw_colour(latent_image)
+    for name, array in (("spectral image", spectral), ("raw colour image", raw_colour)):
+        if not np.all(np.isfinite(array)):
+            raise DataError(f"reconstruction produced NaN/Inf in the {name}; please report this")
+    log["patches"] = _patch_summary(records)
+    log["patch_records"] = records
+    log["seconds"] = time.perf_counter() - started
+    return Reconstruction(
+        spectral.astype(np.float32),
+        None if space.centres_nm is None else space.centres_nm.copy(),
+        raw_colour.astype(np.float32),
+        space,
+        log,
+    )
+
+
+def _spectral_matrix(space: LatentSpace) -> np.ndarray:
+    """Matrix mapping a latent pixel to the spectrum at the band centres (incl. scale)."""
+    return space.spectral_values(np.eye(space.channels)).T
+
+
+def _patch_summary(records: list[dict]) -> dict:
+    iterations = [r["iterations"] for r in records]
+    return {
+        "count": len(records),
+        "phi_used": sum(r["phi"] == "used" for r in records),
+        "phi_skipped_negligible": sum(r["phi"] == "skipped: negligible" for r in records),
+        "phi_skipped_flat": sum(r["phi"] == "skipped: flat patch" for r in records),
+        "converged": sum(r["converged"] for r in records),
+        "iterations_median": float(np.median(iterations)),
+        "iterations_max": int(max(iterations)),
+        "cg_iterations_max": int(max(r["cg_max"] for r in records)),
+        "patch_seconds_total": float(sum(r["seconds"] for r in records)),
+    }

@@ -1,0 +1,74 @@
+"""Small problem builders shared by the reconstruction solver tests."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+from labkit.spectra import camera_response
+from reconstruction.image_formation import ImageFormation, LatentSpace
+
+RESPONSE = "Nikon 5100 (NPL)"
+
+
+def latent_space() -> LatentSpace:
+    return LatentSpace.spectral(camera_response(RESPONSE))
+
+
+def normalised_colour() -> np.ndarray:
+    c = latent_space().colour_matrix()
+    return c / c.sum(axis=1).max()
+
+
+def blobs(shape: tuple[int, int], n: int, rng: np.random.Generator, count: int = 10) -> np.ndarray:
+    """A textured latent image: overlapping disks of random spectra, slightly blurred, ≥ 0.05."""
+    truth = np.zeros((*shape, n))
+    yy, xx = np.mgrid[: shape[0], : shape[1]]
+    for _ in range(count):
+        cy, cx = rng.uniform(0, shape[0]), rng.uniform(0, shape[1])
+        r = rng.uniform(shape[0] / 16, shape[0] / 4)
+        truth[(yy - cy) ** 2 + (xx - cx) ** 2 < r * r] = rng.uniform(0, 1, n)
+    return ndimage.gaussian_filter(truth, (0.7, 0.7, 0)) + 0.05
+
+
+def noisy_raw(
+    formation: ImageFormation, rng: np.random.Generator, noise: float = 0.01
+) -> tuple[np.ndarray, np.ndarray]:
+    """(truth, raw) with relative Gaussian noise on the rendered mosaic."""
+    truth = blobs(formation.range_shape, formation.domain_shape[2], rng)
+    raw = formation.forward(truth)
+    return truth, raw + noise * raw.mean() * rng.standard_normal(raw.shape)
+
+
+def rig_lens_model(shape: tuple[int, int] = (2048, 2448)):
+    """A to_reference spectral model of the simulated rig's lens at full sensor size.
+
+    First-order inverse of the lens' dispersion relative to 593.06 nm (the effective
+    wavelength of the rig's 600 nm band): e(q, λ) = −u(q)(s(λ) − s(λ_ref)).
+    """
+    from _helpers import planted_dispersion_model
+
+    from labkit.rig import load_rig
+    from labkit.sim.lens import Lens
+
+    rig = load_rig("labkit/rigs/simulated.yaml")
+    lens = Lens(shape, **rig.sim.lens.model_dump())
+    reference = float(lens.spectral_factor(593.06))
+
+    class LensField:
+        kind = "test"
+
+        def evaluate(self, points: np.ndarray) -> np.ndarray:
+            ux, uy = lens.radial_field(points[:, 0], points[:, 1])
+            s = lens.spectral_factor(points[:, 2]) - reference
+            return -np.stack([ux * s, uy * s], axis=1)
+
+        def to_dict(self) -> dict:
+            return {"kind": self.kind}
+
+    return planted_dispersion_model(
+        {"spectral": LensField()},
+        shape=shape,
+        direction="to_reference",
+        wavelength_span=(400.0, 700.0),
+    )

@@ -1,0 +1,171 @@
+"""`reconstruction.reconstruct`: validation, the patch driver's skipping, weights, known answers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from _problems import RESPONSE, blobs
+from test_dispersion_operator import ConstantField
+from test_image_formation import spectral_model
+
+from labkit.cfa import mosaic
+from labkit.errors import DataError
+from labkit.spectra import camera_response
+from reconstruction.image_formation import LatentSpace, build_formation
+from reconstruction.reconstruct import reconstruct
+
+RESPONSE_RGB = camera_response(RESPONSE)
+SHAPE = (40, 60)
+
+
+def grey_raw(shape=SHAPE, colour=(0.3, 0.5, 0.2)) -> np.ndarray:
+    return mosaic(np.broadcast_to(np.array(colour), (*shape, 3)).copy(), "GBRG")
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"raw": np.ones((41, 60))}, "even"),
+        ({"raw": np.where(np.eye(40, 60) > 0, np.nan, 1.0)}, "NaN"),
+        (
+            {"dispersion": spectral_model(ConstantField((0.1, 0.0)), shape=(20, 20))},
+            "calibrated for",
+        ),
+        ({"bands": np.linspace(300, 600, 7)}, "not covered"),
+        ({"prior": "TV3"}, "unknown prior"),
+        ({"weights": "fixed:0.1,0.2"}, "1 term"),
+        ({"weights": "auto:best"}, "criterion"),
+        (
+            {
+                "dispersion": spectral_model(ConstantField((0.1, 0.0)), shape=SHAPE).__class__(
+                    **{
+                        **spectral_model(ConstantField((0.1, 0.0))).__dict__,
+                        "direction": "from_reference",
+                    }
+                )
+            },
+            "to_reference",
+        ),
+        ({"response": None}, "camera response"),
+    ],
+)
+def test_bad_input_is_refused_early(change: dict, message: str) -> None:
+    kwargs = {"raw": grey_raw(), "cfa": "GBRG", "response": RESPONSE_RGB, "weights": "fixed:0.1"}
+    kwargs.update(change)
+    raw = kwargs.pop("raw")
+    with pytest.raises(DataError, match=message):
+        reconstruct(raw, **kwargs)
+
+
+def test_flat_scene_is_reproduced_and_skipped() -> None:
+    """A uniform grey mosaic: raw colour back to 1e-3, every patch flat, Φ skipped."""
+    raw = grey_raw((64, 96))
+    model = spectral_model(ConstantField((0.4, -0.3), per_nm=True), shape=(64, 96))
+    result = reconstruct(
+        raw,
+        cfa="GBRG",
+        response=RESPONSE_RGB,
+        dispersion=model,
+        weights="fixed:0.01",
+        patch_px=32,
+        pad_px=8,
+    )
+    np.testing.assert_allclose(
+        result.raw_colour, np.broadcast_to([0.3, 0.5, 0.2], (64, 96, 3)), rtol=1e-3
+    )
+    assert result.spectral.min() >= 0
+    summary = result.log["patches"]
+    assert summary["count"] == 6
+    assert summary["phi_skipped_flat"] == 6
+    assert all(r["iterations"] <= 3 for r in result.log["patch_records"])
+
+
+def test_negligible_dispersion_is_skipped_and_textured_patches_use_phi() -> None:
+    rng = np.random.default_rng(0)
+    space = LatentSpace.spectral(RESPONSE_RGB)
+    a = build_formation(space, (64, 64), "GBRG")
+    raw = a.forward(blobs((64, 64), space.channels, rng))
+    tiny = spectral_model(ConstantField((0.01, 0.01), per_nm=True), shape=(64, 64))
+    result = reconstruct(
+        raw,
+        cfa="GBRG",
+        response=RESPONSE_RGB,
+        dispersion=tiny,
+        weights="fixed:0.01",
+        patch_px=32,
+        pad_px=8,
+    )
+    assert result.log["patches"]["phi_skipped_negligible"] == 4
+    strong = spectral_model(ConstantField((0.8, 0.0), per_nm=True), shape=(64, 64))
+    result = reconstruct(
+        raw,
+        cfa="GBRG",
+        response=RESPONSE_RGB,
+        dispersion=strong,
+        weights="fixed:0.01",
+        patch_px=32,
+        pad_px=8,
+        flat_threshold=None,
+    )
+    assert result.log["patches"]["phi_used"] == 4
+    assert result.log["patches"]["cg_iterations_max"] <= 10
+
+
+def test_planted_shift_is_undone() -> None:
+    """A planted per-band shift: the Φ-aware raw colour matches the truth better."""
+    rng = np.random.default_rng(1)
+    space = LatentSpace.spectral(RESPONSE_RGB)
+    model = spectral_model(ConstantField((1.5, -1.0), per_nm=True), shape=(64, 64))
+    truth = blobs((64, 64), space.channels, rng, count=6)
+    raw = build_formation(space, (64, 64), "GBRG", model=model).forward(truth)
+    truth_colour = space.raw_colour(truth)
+    errors = {}
+    for name, disp in (("plain", None), ("dispersion", model)):
+        result = reconstruct(
+            raw,
+            cfa="GBRG",
+            response=RESPONSE_RGB,
+            dispersion=disp,
+            weights="fixed:0.003",
+            patch_px=64,
+            pad_px=8,
+            flat_threshold=None,
+        )
+        inner = (slice(8, -8), slice(8, -8))
+        errors[name] = float(
+            np.sqrt(np.mean((result.raw_colour[inner] - truth_colour[inner]) ** 2))
+        )
+    assert errors["dispersion"] < 0.5 * errors["plain"]
+
+
+def test_weights_by_mse_are_locally_optimal() -> None:
+    """auto:msec returns a weight whose MSE is no worse than at 0.3× and 3× that weight."""
+    rng = np.random.default_rng(2)
+    space = LatentSpace.spectral(RESPONSE_RGB)
+    a = build_formation(space, (32, 32), "GBRG")
+    truth = blobs((32, 32), space.channels, rng, count=5)
+    raw = a.forward(truth)
+    raw = raw + 0.02 * raw.mean() * rng.standard_normal(raw.shape)
+    spectral_truth = space.spectral_values(truth)
+    chosen = reconstruct(
+        raw,
+        cfa="GBRG",
+        response=RESPONSE_RGB,
+        weights="auto:msec",
+        truth=spectral_truth,
+        weight_patch_px=32,
+        patch_px=32,
+        pad_px=4,
+    )
+    w = chosen.log["weights"]["values"][0]
+    assert 1e-12 < w < 1e6
+
+    def mse(weight):
+        r = reconstruct(
+            raw, cfa="GBRG", response=RESPONSE_RGB, weights=[weight], patch_px=32, pad_px=4
+        )
+        return float(np.mean((r.spectral - spectral_truth) ** 2))
+
+    best = mse(w)
+    assert best <= 1.02 * mse(0.3 * w)
+    assert best <= 1.02 * mse(3 * w)
