@@ -85,30 +85,17 @@ def test_negligible_dispersion_is_skipped_and_textured_patches_use_phi() -> None
     space = LatentSpace.spectral(RESPONSE_RGB)
     a = build_formation(space, (64, 64), "GBRG")
     raw = a.forward(blobs((64, 64), space.channels, rng))
-    tiny = spectral_model(ConstantField((0.01, 0.01), per_nm=True), shape=(64, 64))
-    result = reconstruct(
-        raw,
-        cfa="GBRG",
-        response=RESPONSE_RGB,
-        dispersion=tiny,
-        weights="fixed:0.01",
-        patch_px=32,
-        pad_px=8,
-    )
-    assert result.log["patches"]["phi_skipped_negligible"] == 4
-    strong = spectral_model(ConstantField((0.8, 0.0), per_nm=True), shape=(64, 64))
-    result = reconstruct(
-        raw,
-        cfa="GBRG",
-        response=RESPONSE_RGB,
-        dispersion=strong,
-        weights="fixed:0.01",
-        patch_px=32,
-        pad_px=8,
-        flat_threshold=None,
-    )
-    assert result.log["patches"]["phi_used"] == 4
-    assert result.log["patches"]["cg_iterations_max"] <= 10
+
+    def patches(shift_per_100nm: float) -> dict:
+        model = spectral_model(ConstantField((shift_per_100nm, 0.0), per_nm=True), shape=(64, 64))
+        settings = {"weights": "fixed:0.01", "patch_px": 32, "pad_px": 8, "flat_threshold": None}
+        result = reconstruct(raw, cfa="GBRG", response=RESPONSE_RGB, dispersion=model, **settings)
+        return result.log["patches"]
+
+    assert patches(0.01)["phi_skipped_negligible"] == 4
+    strong = patches(0.8)
+    assert strong["phi_used"] == 4
+    assert strong["cg_iterations_max"] <= 10
 
 
 def test_planted_shift_is_undone() -> None:
