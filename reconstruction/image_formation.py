@@ -35,10 +35,16 @@ import numpy as np
 import scipy.sparse as sp
 
 from calibration.dispersion_model import DispersionModel
-from labkit.cfa import CHANNELS, channel_index, check_layout
+from labkit.cfa import CHANNELS
 from labkit.errors import DataError
-from labkit.spectra import Spectra, trapezoid_weights
-from reconstruction.operators import Dispersion, LinearOperator, SpectralBasis, dispersion_samples
+from labkit.spectra import Spectra, hat_weights, trapezoid_weights
+from reconstruction.operators import (
+    Dispersion,
+    LinearOperator,
+    Mosaic,
+    SpectralBasis,
+    dispersion_samples,
+)
 from reconstruction.operators.basis import choose_bands
 
 
@@ -125,7 +131,7 @@ class LatentSpace:
         basis = basis * self.scale[None, :]
         if samples_nm is None:
             return (weights.T @ basis)[None]
-        hats = _hat_weights(fine, np.asarray(samples_nm, dtype=np.float64))  # (J, f)
+        hats = hat_weights(fine, samples_nm)  # (J, f)
         return np.einsum("fc,jf,fn->jcn", weights, hats, basis)
 
     def spectral_values(self, latent: np.ndarray) -> np.ndarray:
@@ -152,14 +158,6 @@ def _rgb(response: Spectra) -> Spectra:
     return response
 
 
-def _hat_weights(grid: np.ndarray, samples: np.ndarray) -> np.ndarray:
-    """Linear-interpolation weights h_j(f) (J, f), constant beyond the end samples."""
-    if samples.size == 1:
-        return np.ones((1, grid.size))
-    eye = np.eye(samples.size)
-    return np.stack([np.interp(grid, samples, row) for row in eye])
-
-
 class ImageFormation(LinearOperator):
     """A: latent image (rows, cols, n) → raw mosaic (rows, cols).
 
@@ -176,8 +174,8 @@ class ImageFormation(LinearOperator):
 
     Attributes
     ----------
-    mean_shifts_px : ndarray (J, 2) or None
-        Mean displacement of each sample over the patch (for the FFT preconditioner).
+    mosaic : Mosaic
+        M of the patch.
     """
 
     name = "A"
@@ -195,11 +193,11 @@ class ImageFormation(LinearOperator):
             raise DataError(f"colour matrices must be (J, 3, n), got {colour_matrices.shape}")
         n = colour_matrices.shape[2]
         super().__init__((rows, cols, n), (rows, cols))
-        self.cfa = check_layout(cfa)
+        self.mosaic = Mosaic((rows, cols), cfa)
+        self.cfa = self.mosaic.cfa
+        self.channel_index = self.mosaic.index
         self.colour_matrices = colour_matrices
-        self.channel_index = channel_index(self.cfa, (rows, cols)).astype(np.intp)
         self.dispersion = dispersion
-        self.mean_shifts_px = None
         self._matrix = self._matrix_t = None
         if dispersion is not None:
             if dispersion.patch_shape != (rows, cols):
@@ -209,11 +207,15 @@ class ImageFormation(LinearOperator):
                     f"{len(dispersion.matrices)} dispersion samples but "
                     f"{colour_matrices.shape[0]} colour matrices"
                 )
-            self.mean_shifts_px = dispersion.mean_displacement_px
             self._matrix = self._combined(dispersion.matrices)
             self._matrix_t = self._matrix.T.tocsr()
         elif colour_matrices.shape[0] != 1:
             raise DataError("without dispersion there must be exactly one colour matrix")
+
+    @property
+    def mean_shifts_px(self) -> np.ndarray | None:
+        """Mean displacement (J, 2) of each Φ sample over the patch (the FFT preconditioner's)."""
+        return None if self.dispersion is None else self.dispersion.mean_displacement_px
 
     @property
     def colour_matrix(self) -> np.ndarray:
@@ -243,8 +245,7 @@ class ImageFormation(LinearOperator):
     def _forward(self, x: np.ndarray) -> np.ndarray:
         x = x.astype(np.float64, copy=False)
         if self._matrix is None:
-            colour = x @ self.colour_matrices[0].T
-            return np.take_along_axis(colour, self.channel_index[..., None], axis=2)[..., 0]
+            return self.mosaic.forward(x @ self.colour_matrices[0].T)
         stacked = np.einsum("yxn,jcn->jyxc", x, self.colour_matrices, optimize=True)
         return (self._matrix @ stacked.ravel()).reshape(self.range_shape)
 
@@ -252,9 +253,7 @@ class ImageFormation(LinearOperator):
         y = y.astype(np.float64, copy=False)
         rows, cols = self.range_shape
         if self._matrix is None:
-            colour = np.zeros((rows, cols, 3))
-            np.put_along_axis(colour, self.channel_index[..., None], y[..., None], axis=2)
-            return colour @ self.colour_matrices[0]
+            return self.mosaic.adjoint(y) @ self.colour_matrices[0]
         stacked = (self._matrix_t @ y.ravel()).reshape(-1, rows, cols, 3)
         return np.einsum("jyxc,jcn->yxn", stacked, self.colour_matrices, optimize=True)
 

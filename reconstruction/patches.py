@@ -181,9 +181,9 @@ def solve_patch(
     if flat:
         l2 = tuple(PriorTerm(t.operator, 2) for t in solver.terms)
         start_problem = Problem(formation.without_dispersion(), raw, l2, solver.weights, False)
-        x0 = np.maximum(solve(start_problem).latent, 0.0) if solver.nonneg else None
-        if not solver.nonneg:
-            x0 = solve(start_problem).latent
+        x0 = solve(start_problem).latent
+        if solver.nonneg:
+            x0 = np.maximum(x0, 0.0)
     solution = solve(
         problem,
         rtol=solver.rtol,
@@ -211,17 +211,18 @@ def _block(
     block: np.ndarray,
     *,
     block_id: tuple[int, ...] | None = None,
-    starts: tuple[np.ndarray, np.ndarray],
-    counts: tuple[int, int],
+    core_starts: tuple[np.ndarray, np.ndarray],
     solve_kwargs: dict,
 ) -> np.ndarray:
     i, j = block_id[:2]
     pad = solve_kwargs["options"].pad_px
+    counts = (len(core_starts[0]), len(core_starts[1]))
+    # the overlap Dask added (none on the outer sides, where the pre-padding stands instead)
     top, left = (pad if i > 0 else 0), (pad if j > 0 else 0)
     bottom = pad if i < counts[0] - 1 else 0
     right = pad if j < counts[1] - 1 else 0
-    # image coordinates of the extended block's first pixel (the pre-padding is pad_px)
-    origin = (int(starts[0][i]) - top - pad, int(starts[1][j]) - left - pad)
+    # every extended block reaches pad_px beyond its chunk's image pixels
+    origin = (int(core_starts[0][i]) - pad, int(core_starts[1][j]) - pad)
     with threadpool_limits(limits=1, user_api="blas"):
         latent, record = solve_patch(block, origin=origin, **solve_kwargs)
     core = latent[top : block.shape[0] - bottom, left : block.shape[1] - right]
@@ -273,24 +274,18 @@ def reconstruct_patches(
             f"the image ({rows}×{cols}) is too small for pad_px={pad}; use a smaller pad_px"
         )
     padded = np.pad(raw, pad, mode="reflect")
-    row_chunks = list(chunk_sizes(rows, options.patch_px))
-    col_chunks = list(chunk_sizes(cols, options.patch_px))
-    row_chunks[0] += pad
-    row_chunks[-1] += pad
-    col_chunks[0] += pad
-    col_chunks[-1] += pad
-    starts = (np.cumsum([0, *row_chunks[:-1]]), np.cumsum([0, *col_chunks[:-1]]))
-    array = da.from_array(padded, chunks=(tuple(row_chunks), tuple(col_chunks)))
+    cores = (chunk_sizes(rows, options.patch_px), chunk_sizes(cols, options.patch_px))
+    core_starts = tuple(np.cumsum([0, *sizes[:-1]]) for sizes in cores)
+    # the first and last chunk of each axis also hold the pre-padding
+    chunks = tuple(
+        (s[0] + pad, *s[1:-1], s[-1] + pad) if len(s) > 1 else (s[0] + 2 * pad,) for s in cores
+    )
+    array = da.from_array(padded, chunks=chunks)
     n = latent.channels
     solve_kwargs = dict(
         cfa=cfa, latent=latent, colour_gain=colour_gain, model=model, solver=solver, options=options
     )
-    block = functools.partial(
-        _block,
-        starts=starts,
-        counts=(len(row_chunks), len(col_chunks)),
-        solve_kwargs=solve_kwargs,
-    )
+    block = functools.partial(_block, core_starts=core_starts, solve_kwargs=solve_kwargs)
     result = da.map_overlap(
         block,
         array,
@@ -302,26 +297,21 @@ def reconstruct_patches(
         dtype=np.float64,
         name="labkit-reconstruct-patch",
     )
-    full = _compute(result, scheduler, progress, len(row_chunks) * len(col_chunks))
+    full = _compute(result, scheduler, progress, len(cores[0]) * len(cores[1]))
     records = []
-    for i, r0 in enumerate(starts[0]):
-        for j, c0 in enumerate(starts[1]):
-            values = full[r0, c0 : c0 + len(_FIELDS), n]
+    for i, (r0, core_rows) in enumerate(zip(core_starts[0], cores[0], strict=True)):
+        for j, (c0, core_cols) in enumerate(zip(core_starts[1], cores[1], strict=True)):
+            # each block wrote its record at its first output pixel (in the padded frame)
+            first_row = 0 if i == 0 else int(r0) + pad
+            first_col = 0 if j == 0 else int(c0) + pad
+            values = full[first_row, first_col : first_col + len(_FIELDS), n]
             record = dict(zip(_FIELDS, (float(v) for v in values), strict=True))
             record["phi"] = PHI_STATES[int(record["phi"])]
             record["converged"] = bool(record["converged"])
             for key in ("iterations", "cg_max", "samples"):
                 record[key] = int(record[key])
-            core_r0 = max(int(r0) - pad, 0)
-            core_c0 = max(int(c0) - pad, 0)
-            core_rows = (
-                row_chunks[i] - (pad if i == 0 else 0) - (pad if i == len(row_chunks) - 1 else 0)
-            )
-            core_cols = (
-                col_chunks[j] - (pad if j == 0 else 0) - (pad if j == len(col_chunks) - 1 else 0)
-            )
             records.append(
-                {"row": core_r0, "col": core_c0, "rows": core_rows, "cols": core_cols, **record}
+                {"row": int(r0), "col": int(c0), "rows": core_rows, "cols": core_cols, **record}
             )
     return full[pad : pad + rows, pad : pad + cols, :n], records
 

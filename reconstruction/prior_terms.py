@@ -53,17 +53,15 @@ class PriorTerm:
 
     def spatial_symbol(self, shape: tuple[int, int]) -> np.ndarray:
         """Real multiplier (rows, cols) of DᵀD per spatial frequency (the spectral part aside)."""
-        rows, cols = shape
-        sx = 2.0 - 2.0 * np.cos(2.0 * np.pi * np.arange(cols) / cols)
-        sy = 2.0 - 2.0 * np.cos(2.0 * np.pi * np.arange(rows) / rows)
-        laplacian = sy[:, None] + sx[None, :]
+        # ∇ᵀ∇ and the Laplacian share one symbol; DᵀD of the Laplacian is its square
+        laplacian = Laplacian((*shape, 1)).fourier_symbol()
         return laplacian**2 if self.operator == "laplacian" else laplacian
 
     def spectral_matrix(self, channels: int) -> np.ndarray:
         """The channel factor (channels × channels) of DᵀD: I, or D_λᵀD_λ for ∇λ∇xy."""
         if self.operator != "spectral_gradient":
             return np.eye(channels)
-        d = np.eye(channels - 1, channels, 1) - np.eye(channels - 1, channels)
+        d = SpectralGradient((1, 1, channels)).spectral_matrix
         return d.T @ d
 
     def value(self, d_image: np.ndarray) -> float:

@@ -21,6 +21,7 @@ from labkit.cfa import channel_index, check_layout
 from labkit.errors import DataError
 from labkit.spectra import Spectra
 from reconstruction.image_formation import LatentSpace, build_formation
+from reconstruction.operators import SpectralGradient
 from reconstruction.patches import (
     PatchOptions,
     SolverOptions,
@@ -152,7 +153,7 @@ def reference_scale(raw: np.ndarray, cfa: str, colour: np.ndarray) -> np.ndarray
     if n == 3 and np.allclose(colour, np.diag(np.diag(colour))):
         s = np.maximum(mean_colour / np.diag(colour), 0.0)
     else:
-        d = np.eye(n - 1, n, 1) - np.eye(n - 1, n)
+        d = SpectralGradient((1, 1, n)).spectral_matrix
         w = REFERENCE_SMOOTHING * float(np.sum(colour**2))
         s, _ = nnls(
             np.vstack([colour, np.sqrt(w) * d]), np.concatenate([mean_colour, np.zeros(n - 1)])

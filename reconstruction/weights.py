@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from calibration.multispectral import green_bilinear
 from labkit.errors import DataError
 from reconstruction.problem import Problem
 from reconstruction.solvers.admm import solve
@@ -63,15 +64,6 @@ class WeightSelection:
     path: list[dict] = field(default_factory=list)
 
 
-def bilinear_green(raw: np.ndarray, green_mask: np.ndarray) -> np.ndarray:
-    """Bilinear Green channel of a Bayer mosaic (the mean of the 4 neighbours where missing)."""
-    from scipy import ndimage
-
-    green = np.where(green_mask, raw, 0.0)
-    kernel = np.array([[0.0, 0.25, 0.0], [0.25, 1.0, 0.25], [0.0, 0.25, 0.0]])
-    return ndimage.convolve(green, kernel, mode="mirror")
-
-
 class _Evaluator:
     """Solves the patch problems for a weight tuple and scores them."""
 
@@ -90,10 +82,7 @@ class _Evaluator:
         self.solve_options = solve_options
         self.solves = 0
         self._cache: dict[tuple[float, ...], list[np.ndarray]] = {}
-        self._greens = []
-        for p in self.problems:
-            mask = p.formation.channel_index == 1
-            self._greens.append(bilinear_green(p.raw, mask))
+        self._greens = [green_bilinear(p.raw, p.formation.cfa) for p in self.problems]
         self.ideal = self.ranges = None
 
     def solutions(self, weights: tuple[float, ...]) -> list[np.ndarray]:

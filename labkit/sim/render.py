@@ -28,21 +28,7 @@ from scipy import ndimage
 
 from labkit.sim.lens import Lens
 from labkit.sim.scenes import Scene
-from labkit.spectra import Spectra, trapezoid_weights
-
-
-def _hat_weights(s: np.ndarray, levels: np.ndarray) -> np.ndarray:
-    """φ_j(s_i): (n_levels, n_samples) linear-interpolation weights (columns sum to 1)."""
-    if levels.size == 1:
-        return np.ones((1, s.size))
-    position = np.interp(s, levels, np.arange(levels.size, dtype=np.float64))
-    lower = np.clip(np.floor(position).astype(int), 0, levels.size - 2)
-    frac = position - lower
-    weights = np.zeros((levels.size, s.size))
-    columns = np.arange(s.size)
-    weights[lower, columns] = 1.0 - frac
-    weights[lower + 1, columns] += frac
-    return weights
+from labkit.spectra import Spectra, hat_weights, trapezoid_weights
 
 
 def render_irradiance(
@@ -107,7 +93,7 @@ def render_irradiance(
         motion = float(np.hypot(ux, uy).max()) * (s_hi - s_lo)
         n_levels = max(2, int(np.ceil(motion / level_step_px)) + 1) if motion > 0 else 1
         levels = np.linspace(s_lo, s_hi, n_levels)
-        coeff = weights @ _hat_weights(s, levels).T  # (I*3, K, J)
+        coeff = weights @ hat_weights(s, levels).T  # (I*3, K, J)
         acc = np.zeros((x.size, coeff.shape[0]), dtype=np.float32)
         flat_index = np.arange(x.size)[:, None] * scene.n_materials
         for j, level in enumerate(levels):

@@ -1,6 +1,6 @@
 """Spectral core: sampled spectra, datasets, filters, light sources and colour conversion."""
 
-from labkit.spectra.container import Spectra, trapezoid_weights, wavelength_grid
+from labkit.spectra.container import Spectra, hat_weights, trapezoid_weights, wavelength_grid
 from labkit.spectra.conversion import (
     integration_matrix,
     spectral_to_raw,
@@ -34,6 +34,7 @@ __all__ = [
     "cie_1931_cmfs",
     "colorchecker_reflectances",
     "filter_spectra",
+    "hat_weights",
     "illuminant",
     "integration_matrix",
     "lab_spectra",

@@ -117,6 +117,26 @@ class Spectra:
         return Spectra(target, values, self.labels)
 
 
+def hat_weights(values: np.ndarray, nodes: np.ndarray) -> np.ndarray:
+    """Linear-interpolation weights φ_j(v_i), shape (n_nodes, n_values); columns sum to 1.
+
+    φ_j is the hat function of node j on the increasing `nodes`; beyond the end nodes the
+    weights stay at the nearest node (constant extension). One node gives weight 1.
+    """
+    values = np.asarray(values, dtype=np.float64)
+    nodes = np.asarray(nodes, dtype=np.float64)
+    if nodes.size == 1:
+        return np.ones((1, values.size))
+    position = np.interp(values, nodes, np.arange(nodes.size, dtype=np.float64))
+    lower = np.clip(np.floor(position).astype(int), 0, nodes.size - 2)
+    frac = position - lower
+    weights = np.zeros((nodes.size, values.size))
+    columns = np.arange(values.size)
+    weights[lower, columns] = 1.0 - frac
+    weights[lower + 1, columns] += frac
+    return weights
+
+
 def trapezoid_weights(wavelengths: np.ndarray) -> np.ndarray:
     """Weights w such that ``sum(w * f)`` is the trapezoid-rule integral of f, nm.
 

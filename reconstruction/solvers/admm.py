@@ -139,35 +139,36 @@ class _QuadraticStep:
         self.cg_residual = 0.0
         self._build()
 
-    def _coefficients(self) -> tuple[list, float]:
+    def _coefficients(self) -> tuple[list[tuple[float, int]], float]:
+        """(coefficient, term index) of every DᵀD in the matrix, and the identity's coefficient."""
         p = self.problem
         terms = [
-            (2.0 * w, t) for w, t in zip(p.weights, p.terms, strict=True) if t.norm == 2 and w > 0
+            (2.0 * w, j)
+            for j, (w, t) in enumerate(zip(p.weights, p.terms, strict=True))
+            if t.norm == 2 and w > 0
         ]
         identity = 2.0 * p.ridge
         for s in self.splits:
             if s.term_index is None:
                 identity += s.rho
             else:
-                terms.append((s.rho, p.terms[s.term_index]))
+                terms.append((s.rho, s.term_index))
         return terms, identity
 
     def _build(self) -> None:
-        terms, identity = self._coefficients()
-        self._terms_key = tuple(c for c, _ in terms)
+        self.terms, self.identity = self._coefficients()
         self.solver = FourierSolver(
             self.formation.range_shape,
             self.formation.cfa,
             self.formation.fourier_colour(),
-            terms=terms,
-            identity=identity,
+            terms=[(c, self.problem.terms[j]) for c, j in self.terms],
+            identity=self.identity,
         )
-        self.terms, self.identity = terms, identity
 
     def refresh(self) -> None:
         """Re-invert after a penalty change."""
         terms, identity = self._coefficients()
-        if tuple(c for c, _ in terms) != self._terms_key:
+        if terms != self.terms:
             self._build()
         else:
             self.solver.set_identity(identity)
@@ -177,8 +178,8 @@ class _QuadraticStep:
         """The quadratic step's matrix times x, with the true A (and Φ)."""
         a = self.formation
         out = 2.0 * a.adjoint(a.forward(x)) + self.identity * x
-        for coefficient, term in self.terms:
-            d = term.difference(x.shape)
+        for coefficient, j in self.terms:
+            d = self.problem.differences[j]
             out += coefficient * d.adjoint(d.forward(x))
         return out
 
