@@ -18,29 +18,64 @@ Contents
     The patch-wise Dask driver that skips negligible dispersion and flat patches (§3.8.1).
 :func:`reconstruct`
     The whole job: validation, normalisation, weights, patches, outputs and a log.
+:func:`spectral_errors`, :func:`colour_errors`, :func:`registration_scale`, :func:`patch_weights`
+    Evaluation metrics (§4.4.1–4.4.2): MRAE, RMSE, GOF, SSIM; per-band registration.
+:func:`residual_aberration`, :func:`patch_regions`, :func:`ideal_image`
+    Residual chromatic aberration in strips inside ColorChecker patch edges (§4.4.3).
+:data:`BASELINES`, :func:`baseline`
+    Comparison methods (§4.6): bilinear, Malvar, Menon demosaicing, then optional warping.
 """
 
+from reconstruction.baselines import BASELINES, baseline
 from reconstruction.image_formation import ImageFormation, LatentSpace, build_formation
+from reconstruction.metrics import (
+    ColourErrors,
+    SpectralErrors,
+    colour_errors,
+    patch_weights,
+    registration_scale,
+    spectral_errors,
+)
 from reconstruction.patches import PatchOptions, SolverOptions, reconstruct_patches
 from reconstruction.prior_terms import PRIORS, PriorTerm, prior_terms
 from reconstruction.problem import Problem
 from reconstruction.reconstruct import Reconstruction, reconstruct
+from reconstruction.residual_aberration import (
+    PatchRegions,
+    ResidualAberration,
+    ideal_image,
+    patch_regions,
+    residual_aberration,
+)
 from reconstruction.weights import CRITERIA, WeightSelection, select_weights
 
 __all__ = [
+    "BASELINES",
     "CRITERIA",
     "PRIORS",
+    "ColourErrors",
     "ImageFormation",
     "LatentSpace",
     "PatchOptions",
+    "PatchRegions",
     "PriorTerm",
     "Problem",
     "Reconstruction",
+    "ResidualAberration",
     "SolverOptions",
+    "SpectralErrors",
     "WeightSelection",
+    "baseline",
     "build_formation",
+    "colour_errors",
+    "ideal_image",
+    "patch_regions",
+    "patch_weights",
     "prior_terms",
     "reconstruct",
     "reconstruct_patches",
+    "registration_scale",
+    "residual_aberration",
     "select_weights",
+    "spectral_errors",
 ]

@@ -56,6 +56,7 @@ _FIELDS = (
     "max_shift_px",
     "texture",
     "samples",
+    "flat",
 )
 
 
@@ -197,6 +198,7 @@ def solve_patch(
     record.update(
         iterations=report.iterations,
         converged=float(report.converged),
+        flat=float(flat),
         phi=phi_state,
         cg_max=max(cg) if cg else 0,
         cg_mean=float(np.mean(cg)) if cg else 0.0,
@@ -308,6 +310,7 @@ def reconstruct_patches(
             record = dict(zip(_FIELDS, (float(v) for v in values), strict=True))
             record["phi"] = PHI_STATES[int(record["phi"])]
             record["converged"] = bool(record["converged"])
+            record["flat"] = bool(record["flat"])
             for key in ("iterations", "cg_max", "samples"):
                 record[key] = int(record[key])
             records.append(

@@ -93,48 +93,61 @@ def parse_weights(
     return "fixed", values
 
 
-def _check_raw(raw: np.ndarray) -> np.ndarray:
+def check_raw(raw: np.ndarray, *, where: str = "the raw image") -> np.ndarray:
+    """`raw` as float64 after checking it is an even-sized, finite 2-D mosaic (≥ 8×8 px).
+
+    `where` names the image in messages (e.g. its file).
+    """
     raw = np.asarray(raw)
     if raw.ndim != 2:
-        raise DataError(f"the raw image must be a 2-D Bayer mosaic, got shape {raw.shape}")
-    if raw.shape[0] % 2 or raw.shape[1] % 2:
+        raise DataError(f"{where} must be a 2-D Bayer mosaic, got shape {raw.shape}")
+    rows, cols = raw.shape
+    if rows % 2 or cols % 2:
         raise DataError(
-            f"the raw image is {raw.shape[0]}×{raw.shape[1]} px; a Bayer mosaic needs an even "
-            "number of rows and columns: crop one row/column (keeping the CFA phase)"
+            f"{where} is {rows}×{cols} px; a Bayer mosaic needs an even number of rows and "
+            "columns: crop one row/column (keeping the CFA phase)"
         )
-    if min(raw.shape) < 8:
-        raise DataError(f"the raw image ({raw.shape}) is too small to reconstruct (≥ 8×8 px)")
+    if min(rows, cols) < 8:
+        raise DataError(f"{where} ({rows}×{cols} px) is too small to reconstruct (≥ 8×8 px)")
     bad = ~np.isfinite(raw)
     if bad.any():
-        where = np.argwhere(bad)[0]
+        first = np.argwhere(bad)[0]
         raise DataError(
-            f"the raw image has {int(bad.sum())} NaN/Inf pixel(s), first at (row, col) = "
-            f"({where[0]}, {where[1]}); repair or mask them before reconstruction"
+            f"{where} has {int(bad.sum())} NaN/Inf pixel(s), first at (row, col) = "
+            f"({first[0]}, {first[1]}); repair or mask them before reconstruction"
         )
     return raw.astype(np.float64)
 
 
-def _check_model(model: DispersionModel | str | Path | None, shape, latent: LatentSpace):
+def check_dispersion_model(
+    model: DispersionModel | str | Path | None,
+    shape: tuple[int, int],
+    kind: str,
+    *,
+    where: str = "the dispersion model",
+) -> DispersionModel | None:
+    """Load `model` (if a path) and check it suits a `kind` reconstruction of `shape` px."""
     if model is None:
         return None
     if not isinstance(model, DispersionModel):
         model = load_dispersion_model(model)
     if tuple(model.image_shape) != tuple(shape):
         raise DataError(
-            f"the dispersion model was calibrated for {model.image_shape[0]}×"
-            f"{model.image_shape[1]} px images but the raw image is {shape[0]}×{shape[1]} px; "
-            "use a model calibrated with this camera and image size"
+            f"{where} was calibrated for {model.image_shape[0]}×{model.image_shape[1]} px "
+            f"images but the raw image is {shape[0]}×{shape[1]} px; use a model calibrated "
+            "with this camera at this image size"
         )
     if model.direction != "to_reference":
         raise DataError(
-            "reconstruction needs a to_reference dispersion model; recalibrate with "
-            "`labkit calibrate dispersion --direction to_reference`"
+            f"{where} is a {model.direction} model; reconstruction needs to_reference: "
+            "recalibrate with `labkit calibrate dispersion --direction to_reference`"
         )
-    wanted = "xylambda" if latent.kind == "spectral" else "xy"
+    wanted = "xylambda" if kind == "spectral" else "xy"
     if model.variables != wanted:
+        names = {"xylambda": "spectral", "xy": "colour-channel"}
         raise DataError(
-            f"a {latent.kind} reconstruction needs a {wanted} dispersion model, this one is "
-            f"{model.variables}"
+            f"{where} is a {names.get(model.variables, model.variables)} model; a {kind} "
+            f"reconstruction (--latent {kind}) needs a {names[wanted]} model"
         )
     return model
 
@@ -259,7 +272,7 @@ def reconstruct(
         Bad input of any kind, before heavy work starts.
     """
     started = time.perf_counter()
-    raw = _check_raw(raw)
+    raw = check_raw(raw)
     cfa = check_layout(cfa)
     if latent == "spectral":
         if response is None:
@@ -277,7 +290,7 @@ def reconstruct(
         raise DataError("weights='auto:msec' needs the true spectral image (truth=...)")
     if reference not in (None, "mean-colour"):
         raise DataError(f"unknown reference {reference!r}; use None or 'mean-colour' (§6.3)")
-    model = _check_model(dispersion, raw.shape, space)
+    model = check_dispersion_model(dispersion, raw.shape, space.kind)
     options = PatchOptions(patch_px=patch_px, pad_px=pad_px, flat_threshold=flat_threshold)
     if model is not None:
         reach = max_dispersion(model, space, (0, 0), raw.shape)
@@ -303,11 +316,16 @@ def reconstruct(
         "prior": prior,
         "nonneg": nonneg,
         "reference": reference,
+        "flat_threshold": flat_threshold,
         "normalisation": {"raw_scale": raw_scale, "colour_gain": colour_gain},
         "reference_scale": [float(v) for v in space.scale],
         "dispersion": None
         if model is None
-        else {"source": str(getattr(model, "source", "")), "variables": model.variables},
+        else {
+            "source": str(dispersion) if isinstance(dispersion, (str, Path)) else "in memory",
+            "variables": model.variables,
+            "provenance": model.to_dict().get("provenance", {}),
+        },
     }
 
     t0 = time.perf_counter()
@@ -407,6 +425,7 @@ def _patch_summary(records: list[dict]) -> dict:
         "phi_used": sum(r["phi"] == "used" for r in records),
         "phi_skipped_negligible": sum(r["phi"] == "skipped: negligible" for r in records),
         "phi_skipped_flat": sum(r["phi"] == "skipped: flat patch" for r in records),
+        "flat": sum(r["flat"] for r in records),
         "converged": sum(r["converged"] for r in records),
         "iterations_median": float(np.median(iterations)),
         "iterations_max": int(max(iterations)),

@@ -1,0 +1,579 @@
+"""``labkit reconstruct RAW.exr (--rig RIG | --response CSV) --out DIR``: thesis problem (3.1).
+
+A thin layer over :func:`reconstruction.reconstruct`: every option is checked (and every
+input read) before any work starts or anything is written, then the spectral image, its
+raw colour, an sRGB preview and the log are written atomically into DIR.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import math
+import os
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from labkit.errors import ConfigError, DataError
+
+#: What ``--scheduler`` accepts besides ``tcp://host:port``.
+SCHEDULERS = ("threads", "processes", "sync")
+#: Texture below which a patch counts as flat (passed to reconstruct, counted in the summary).
+FLAT_THRESHOLD = 0.01
+#: The weight criteria the command line can use (``auto:msec`` needs the true image).
+CLI_CRITERIA = ("dmc", "mdc")
+
+
+def register(commands: argparse._SubParsersAction) -> None:
+    """Add ``labkit reconstruct``."""
+    parser = commands.add_parser(
+        "reconstruct",
+        help="spectral image from one Bayer raw image, free of lateral chromatic aberration",
+        description="Reconstruct a spectral image straight from a raw (mosaic) EXR by solving "
+        "thesis problem (3.1), A = M·Ω·Φ·B with a regularising prior, patch by patch on Dask. "
+        "The camera response (and CFA layout) come from --rig or --response; --dispersion "
+        "adds the lens' lateral chromatic aberration (a to_reference model). Writes "
+        "DIR/spectral.exr (one band per --bands centre, in the raw image's units per nm), "
+        "DIR/raw_colour.exr (the aberration-free image in raw camera colour), "
+        "DIR/preview.png (CIE 1931 2° → sRGB, 99.5th percentile of luminance shown as "
+        "white) and DIR/log.json (weights, iterations, times, what each patch skipped, the "
+        "arguments). With --latent colour the latent image is raw colour (thesis (3.27)) and "
+        "no spectral.exr is written. Bad input is refused before anything is written.",
+    )
+    parser.add_argument("raw", type=Path, help="raw mosaic EXR (from `labkit hdr`)")
+    parser.add_argument(
+        "--rig", type=Path, default=None, help="rig YAML: camera response and CFA layout"
+    )
+    parser.add_argument(
+        "--response",
+        default=None,
+        metavar="FILE.csv",
+        help="camera response CSV (wavelength_nm,R,G,B) or a colour-science dataset name, "
+        "instead of --rig (the CFA layout then comes from the raw EXR)",
+    )
+    parser.add_argument(
+        "--bands",
+        default=None,
+        metavar="NM,NM,…",
+        help="equally spaced band centres, nm, e.g. 400,450,500,550,600,650,700 "
+        "(default: chosen from the camera response's bandlimit, thesis §3.3.2)",
+    )
+    parser.add_argument(
+        "--dispersion",
+        type=Path,
+        default=None,
+        metavar="MODEL.yaml",
+        help="to_reference dispersion model of this camera and image size (spectral for "
+        "--latent spectral, colour-channel for --latent colour); default: no Φ",
+    )
+    parser.add_argument(
+        "--prior",
+        default="L2",
+        help="prior of thesis Table 3.1: L1, L2, Lap1, Lap2, L1L1, L2L2, L1SpatialLap2 or "
+        "L1SpectralLap2 (default L2)",
+    )
+    parser.add_argument(
+        "--nonneg",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="constrain the latent image to be non-negative (default: --nonneg)",
+    )
+    parser.add_argument(
+        "--weights",
+        default="auto:dmc",
+        metavar="auto:dmc|auto:mdc|fixed:W[,W…]",
+        help="regularisation weights: chosen by Algorithm 3 on the most textured patch with "
+        "the demosaicing (dmc) or minimum-distance (mdc) criterion, or fixed, one per prior "
+        "term, in normalised units (default auto:dmc)",
+    )
+    parser.add_argument(
+        "--latent",
+        default="spectral",
+        metavar="spectral|colour",
+        help="spectral: problem (3.1); colour: direct raw-colour estimation (3.27) "
+        "(default spectral)",
+    )
+    parser.add_argument(
+        "--reference",
+        default="none",
+        metavar="mean-colour|none",
+        help="mean-colour: reconstruct relative to a smooth spectrum fitted to the image's "
+        "mean colour (thesis §6.3) (default none)",
+    )
+    parser.add_argument(
+        "--rtol",
+        default=None,
+        metavar="TOL",
+        help="ADMM relative tolerance per patch (default: the solver's, 1e-4)",
+    )
+    parser.add_argument(
+        "--patch-px",
+        default="128",
+        metavar="N",
+        help="patch size, px, even ≥ 8 (default 128)",
+    )
+    parser.add_argument(
+        "--pad-px",
+        default="16",
+        metavar="N",
+        help="overlap on each side of a patch, px, even ≥ 2; must exceed twice the largest "
+        "dispersion (default 16)",
+    )
+    parser.add_argument(
+        "--scheduler",
+        default="threads",
+        metavar="threads|processes|sync|tcp://HOST:PORT",
+        help="Dask scheduler for the patches: local threads (default), local processes, "
+        "synchronous, or a dask.distributed scheduler's address",
+    )
+    parser.add_argument("--out", type=Path, required=True, help="output folder (created)")
+    parser.add_argument(
+        "--quiet", action="store_true", help="no progress bar (it is off anyway off a terminal)"
+    )
+    parser.set_defaults(handler=_reconstruct)
+
+
+@dataclass
+class _Job:
+    """Everything read and checked before any work starts."""
+
+    raw: Any  # labkit.io.RawImage
+    cfa: str
+    response: Any  # Spectra or None
+    response_source: str | None
+    bands: list[float] | None
+    dispersion: Any  # DispersionModel or None
+    reference: str | None
+    options: dict[str, Any]  # keyword arguments of reconstruct() besides the above
+
+
+def _reconstruct(args: argparse.Namespace) -> int:
+    import time
+
+    job = _prepare(args)
+    started = time.perf_counter()
+    bar = _ProgressBar(enabled=not args.quiet and sys.stderr.isatty())
+    if bar.enabled and args.weights.startswith("auto:"):
+        print(f"choosing weights ({args.weights}, Algorithm 3)…", file=sys.stderr)
+    try:
+        from reconstruction import reconstruct
+
+        result = reconstruct(
+            job.raw.raw,
+            cfa=job.cfa,
+            response=job.response,
+            bands=job.bands,
+            dispersion=job.dispersion,
+            reference=job.reference,
+            flat_threshold=FLAT_THRESHOLD,
+            progress=bar.update,
+            **job.options,
+        )
+    except OSError as error:
+        if not args.scheduler.startswith("tcp://"):
+            raise
+        raise DataError(_unreachable(args.scheduler, error)) from None
+    finally:
+        bar.close()
+    seconds = time.perf_counter() - started
+    paths = _write_outputs(args, job, result)
+    _print_summary(args, result, paths, seconds)
+    return 0
+
+
+# -- checking -------------------------------------------------------------------------
+def _prepare(args: argparse.Namespace) -> _Job:
+    """Read and check every input and option; raises before anything is written."""
+    from labkit.io import read_raw_exr
+
+    latent = _choice(args.latent, "--latent", ("spectral", "colour"))
+    reference = _choice(args.reference, "--reference", ("mean-colour", "none"))
+    scheduler = _scheduler(args.scheduler)
+    rtol = None if args.rtol is None else _positive_float(args.rtol, "--rtol")
+    patch_px = _even_int(args.patch_px, "--patch-px", 8)
+    pad_px = _even_int(args.pad_px, "--pad-px", 2)
+    _check_out(args.out)
+    if args.rig is not None and args.response is not None:
+        raise ConfigError(
+            "give either --rig (camera response and CFA from the rig file) or --response "
+            "(a response CSV), not both"
+        )
+    if latent == "spectral" and args.rig is None and args.response is None:
+        raise ConfigError(
+            "a spectral reconstruction needs the camera response: give --rig RIG.yaml or "
+            "--response FILE.csv (wavelength_nm,R,G,B)"
+        )
+    if latent == "colour" and args.bands is not None:
+        raise ConfigError("--latent colour estimates raw colour and takes no --bands")
+    bands = None if args.bands is None else _bands(args.bands)
+
+    if not args.raw.is_file():
+        raise DataError(
+            f"raw image {args.raw} does not exist; give a raw mosaic EXR (from `labkit hdr`)"
+        )
+    try:
+        raw = read_raw_exr(args.raw)
+    except DataError as error:
+        raise DataError(
+            f"{error} (labkit reconstruct needs a raw mosaic EXR, e.g. from `labkit hdr`)"
+        ) from None
+    from reconstruction.reconstruct import check_dispersion_model, check_raw
+
+    check_raw(raw.raw, where=f"raw image {args.raw}")
+
+    cfa = raw.cfa
+    response, source = None, None
+    if args.rig is not None:
+        from labkit.rig import load_rig
+
+        rig = load_rig(args.rig)
+        if rig.cfa != raw.cfa:
+            raise DataError(
+                f"CFA layouts disagree: {args.raw} says {raw.cfa}, {args.rig} says {rig.cfa} "
+                f"(camera.pixel_format {rig.camera.pixel_format}); use the rig the image was "
+                "taken with"
+            )
+        source = rig.response_source()
+        response = _response(source, f"{args.rig}: camera.response")
+    elif args.response is not None:
+        source = args.response
+        response = _response(source, "--response")
+
+    from reconstruction import PRIORS, LatentSpace, prior_terms
+    from reconstruction.reconstruct import parse_weights
+
+    channels = 3
+    if latent == "spectral":
+        space = _latent_space(LatentSpace, response, None, f"camera response {source}")
+        if bands is not None:
+            space = _latent_space(LatentSpace, response, bands, f"--bands {args.bands}")
+        channels = space.channels
+    if args.prior not in PRIORS:
+        raise ConfigError(
+            f"unknown --prior {args.prior!r}; use one of {', '.join(PRIORS)} (thesis Table 3.1)"
+        )
+    terms = prior_terms(args.prior, channels=channels)
+    _check_weights(args.weights, parse_weights, args.prior, len(terms))
+    dispersion = None
+    if args.dispersion is not None:
+        from calibration.dispersion_model import load_dispersion_model
+
+        dispersion = check_dispersion_model(
+            load_dispersion_model(args.dispersion),
+            raw.raw.shape,
+            latent,
+            where=f"--dispersion {args.dispersion}",
+        )
+
+    options: dict[str, Any] = dict(
+        prior=args.prior,
+        nonneg=args.nonneg,
+        weights=args.weights,
+        latent=latent,
+        patch_px=patch_px,
+        pad_px=pad_px,
+        scheduler=scheduler,
+    )
+    if rtol is not None:
+        options["rtol"] = rtol
+    return _Job(
+        raw=raw,
+        cfa=cfa,
+        response=response,
+        response_source=source,
+        bands=bands,
+        dispersion=dispersion,
+        reference=None if reference == "none" else reference,
+        options=options,
+    )
+
+
+def _choice(value: str, option: str, allowed: tuple[str, ...]) -> str:
+    if value not in allowed:
+        raise ConfigError(f"{option} is {value!r}; use one of {', '.join(allowed)}")
+    return value
+
+
+def _scheduler(value: str) -> str:
+    if value in SCHEDULERS:
+        return value
+    host, _, port = value.removeprefix("tcp://").rpartition(":")
+    if not value.startswith("tcp://") or not host or not port.isdigit():
+        raise ConfigError(
+            f"--scheduler is {value!r}; use {', '.join(SCHEDULERS)} or tcp://HOST:PORT "
+            "(a dask.distributed scheduler)"
+        )
+    import socket
+
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=5).close()
+    except OSError as error:
+        raise ConfigError(_unreachable(value, error)) from None
+    return value
+
+
+def _unreachable(scheduler: str, error: OSError) -> str:
+    return (
+        f"--scheduler {scheduler}: cannot reach the Dask scheduler ({error}); start one "
+        "(`dask scheduler`) or use --scheduler threads"
+    )
+
+
+def _positive_float(text: str, option: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value) or value <= 0:
+        raise ConfigError(f"{option} is {text!r}; expected a positive number such as 1e-4")
+    return value
+
+
+def _even_int(text: str, option: str, least: int) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < least or value % 2:
+        raise ConfigError(f"{option} is {text!r}; expected an even whole number ≥ {least}")
+    return value
+
+
+def _bands(text: str) -> list[float]:
+    try:
+        values = [float(part) for part in text.split(",")]
+    except ValueError:
+        values = []
+    if not values or not all(math.isfinite(v) for v in values):
+        raise ConfigError(
+            f"--bands {text!r}: expected comma-separated wavelengths in nm, "
+            "e.g. 400,450,500,550,600,650,700"
+        )
+    if len(values) < 2 or any(b <= a for a, b in itertools.pairwise(values)):
+        raise ConfigError(
+            f"--bands {text!r}: give ≥ 2 band centres in increasing order, "
+            "e.g. 400,450,500,550,600,650,700"
+        )
+    return values
+
+
+def _check_weights(text: str, parse_weights: Any, prior: str, terms: int) -> None:
+    kind, _, rest = text.partition(":")
+    if kind == "auto" and rest == "msec":
+        raise ConfigError(
+            f"--weights {text} needs the true spectral image, which only the Python API takes "
+            "(reconstruct(..., truth=...)); use auto:dmc, auto:mdc or fixed:W"
+        )
+    if kind == "auto" and rest not in CLI_CRITERIA:
+        raise ConfigError(
+            f"--weights {text}: unknown criterion {rest!r}; use auto:dmc, auto:mdc or fixed:W"
+        )
+    if kind not in ("auto", "fixed"):
+        raise ConfigError(
+            f"--weights {text!r}: use auto:dmc, auto:mdc or fixed:W[,W…] (one weight per "
+            "prior term)"
+        )
+    if kind == "fixed" and len(rest.split(",")) != terms:
+        raise ConfigError(
+            f"--weights {text}: --prior {prior} has {terms} term(s), so give {terms} "
+            f"comma-separated weight(s)"
+        )
+    try:
+        parse_weights(text, terms)
+    except DataError as error:
+        raise ConfigError(f"--weights: {error}") from None
+
+
+def _check_out(out: Path) -> None:
+    """The output folder can be created (or is a folder); nothing is created here."""
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {out} exists and is not a folder; choose a folder")
+    existing = out
+    while not existing.exists() and existing.parent != existing:
+        existing = existing.parent
+    if existing.exists() and (not existing.is_dir() or not os.access(existing, os.W_OK)):
+        raise ConfigError(f"--out {out}: cannot create files under {existing}; choose another")
+
+
+def _response(source: str, where: str) -> Any:
+    from labkit.spectra import camera_response
+
+    try:
+        return camera_response(source)
+    except DataError as error:
+        raise DataError(f"{where}: {error}") from None
+
+
+def _latent_space(latent_space: Any, response: Any, bands: list[float] | None, where: str) -> Any:
+    try:
+        return latent_space.spectral(response, bands)
+    except DataError as error:
+        raise DataError(f"{where}: {error}") from None
+
+
+# -- running ----------------------------------------------------------------------------
+class _ProgressBar:
+    """tqdm bar over patches, created at the first patch (weight selection prints none)."""
+
+    def __init__(self, enabled: bool) -> None:
+        self.enabled = enabled
+        self.bar = None
+
+    def update(self, done: int, total: int) -> None:
+        if not self.enabled:
+            return
+        if self.bar is None:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=total, unit="patch", desc="reconstruct", dynamic_ncols=True)
+        self.bar.update(done - self.bar.n)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+# -- writing ----------------------------------------------------------------------------
+def _write_outputs(args: argparse.Namespace, job: _Job, result: Any) -> dict[str, Path]:
+    """Write the outputs (atomically, the log last); returns their paths by name."""
+    import numpy as np
+
+    import labkit
+    from labkit.io import (
+        SpectralImage,
+        to_display,
+        to_plain,
+        write_png,
+        write_rgb_exr,
+        write_spectral_exr,
+        write_text_atomic,
+    )
+
+    out: Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    weights = result.log["weights"]
+    provenance = {
+        "software": f"labkit {labkit.__version__}",
+        "command": "labkit reconstruct",
+        "input": str(args.raw),
+        "raw": {
+            "cfa": job.cfa,
+            "shape": list(job.raw.raw.shape),
+            "exposure_s": job.raw.exposure_s,
+            "illumination": job.raw.illumination,
+            "wavelength_nm": job.raw.wavelength_nm,
+            "labkit": job.raw.labkit,
+        },
+        "rig": None if args.rig is None else str(args.rig),
+        "response": job.response_source,
+        "dispersion_model": None if args.dispersion is None else str(args.dispersion),
+        "latent": result.latent.kind,
+        "prior": args.prior,
+        "nonneg": args.nonneg,
+        "weights": {
+            "requested": args.weights,
+            "criterion": weights["criterion"],
+            "values": weights["values"],
+        },
+        "reference": job.reference,
+    }
+    paths: dict[str, Path] = {}
+    if result.wavelengths_nm is not None:
+        from labkit.spectra.conversion import spectral_to_xyz, xyz_to_srgb
+
+        centres = np.asarray(result.wavelengths_nm, dtype=np.float64)
+        basis = {
+            "kernel": result.latent.kernel,
+            "spacing_nm": float(centres[1] - centres[0]),
+            "values": "spectrum at the band centres",
+            "reference_scale": [float(v) for v in result.latent.scale],
+        }
+        paths["spectral"] = out / "spectral.exr"
+        write_spectral_exr(
+            paths["spectral"],
+            SpectralImage(
+                result.spectral,
+                centres,
+                {**provenance, "basis": basis, "units": "raw units per nm"},
+            ),
+        )
+        xyz = spectral_to_xyz(result.spectral, centres)
+        white = float(np.percentile(xyz[..., 1], 99.5))
+        if not math.isfinite(white) or white <= 0:
+            white = 1.0
+        preview = (xyz_to_srgb(xyz / white) * 255 + 0.5).astype(np.uint8)
+    else:
+        preview = to_display(np.maximum(result.raw_colour, 0), max_side=None)
+    paths["raw_colour"] = out / "raw_colour.exr"
+    write_rgb_exr(paths["raw_colour"], result.raw_colour, {**provenance, "units": "raw units"})
+    paths["preview"] = out / "preview.png"
+    write_png(paths["preview"], preview)
+    paths["log"] = out / "log.json"
+    arguments = {k: v for k, v in vars(args).items() if k not in ("handler", "command")}
+    log = {
+        "command": "labkit reconstruct",
+        "arguments": arguments,
+        "software": provenance["software"],
+        "input": provenance["input"],
+        "rig": provenance["rig"],
+        "response": provenance["response"],
+        "dispersion_model": provenance["dispersion_model"],
+        "options": {
+            **{k: v for k, v in job.options.items() if k != "weights"},
+            "flat_threshold": FLAT_THRESHOLD,
+        },
+        "outputs": {name: path.name for name, path in paths.items()},
+        **result.log,
+    }
+    write_text_atomic(paths["log"], json.dumps(to_plain(log), indent=2, ensure_ascii=False) + "\n")
+    return paths
+
+
+def _print_summary(
+    args: argparse.Namespace, result: Any, paths: dict[str, Path], seconds: float
+) -> None:
+    log = result.log
+    rows, cols = result.raw_colour.shape[:2]
+    if result.wavelengths_nm is not None:
+        w = result.wavelengths_nm
+        what = f"{len(w)} bands {w[0]:g}–{w[-1]:g} nm"
+    else:
+        what = "raw colour (latent colour)"
+    sign = "non-negative" if args.nonneg else "signed"
+    print(f"reconstructed {rows}×{cols} px → {what}; prior {args.prior}, {sign}")
+    weights = log["weights"]
+    values = ", ".join(f"{v:.4g}" for v in weights["values"])
+    if weights["criterion"] == "fixed":
+        print(f"weights: {values} (fixed)")
+    else:
+        print(
+            f"weights: {values} (auto:{weights['criterion']}, {weights['solves']} solves, "
+            f"{weights['seconds']:.1f} s)"
+        )
+    patches = log["patches"]
+    flat = patches["flat"]
+    if args.dispersion is None:
+        phi = "no dispersion model"
+    else:
+        skipped = patches["phi_skipped_negligible"] + patches["phi_skipped_flat"]
+        phi = (
+            f"Φ used on {patches['phi_used']}, skipped on {skipped} "
+            f"({patches['phi_skipped_negligible']} negligible dispersion, "
+            f"{patches['phi_skipped_flat']} flat)"
+        )
+    print(
+        f"patches: {patches['count']}, {flat} flat; {phi}; iterations median "
+        f"{patches['iterations_median']:g}, max {patches['iterations_max']}"
+    )
+    unconverged = patches["count"] - patches["converged"]
+    if unconverged:
+        print(
+            f"warning: {unconverged} patch(es) stopped at the iteration limit before reaching "
+            "--rtol"
+        )
+    print(f"time: {seconds:.1f} s (weights {weights['seconds']:.1f} s, patches "
+          f"{log['solve_seconds']:.1f} s)")  # fmt: skip
+    print("wrote " + ", ".join(str(path) for path in paths.values()))

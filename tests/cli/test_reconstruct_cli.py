@@ -1,0 +1,289 @@
+"""labkit reconstruct: known answers on small simulated raws, outputs, one-line errors."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from calibration.keypoints import DispersionKeypoints
+from calibration.polynomial import fit_polynomial_model
+from labkit.cfa import mosaic
+from labkit.cli import build_parser, main
+from labkit.io import RawImage, read_spectral_exr, write_raw_exr, write_spectral_exr
+from labkit.io.exr import SpectralImage
+from labkit.sim.lens import Lens
+from labkit.spectra import camera_response
+from labkit.spectra.datasets import write_response_csv
+from reconstruction import PRIORS
+
+SHAPE = (64, 96)
+BANDS = "400,450,500,550,600,650,700"
+GREY = np.array([0.3, 0.5, 0.2])
+
+
+def _read_rgb_exr(path: Path) -> np.ndarray:
+    import OpenEXR
+
+    with OpenEXR.File(str(path), separate_channels=True) as exr:
+        channels = exr.channels()
+        return np.stack([np.asarray(channels[c].pixels) for c in "RGB"], axis=-1)
+
+
+def _smooth_colour(shape: tuple[int, int] = SHAPE) -> np.ndarray:
+    """A smooth positive raw-colour image: a horizontal colour wave on a vertical ramp."""
+    yy, xx = np.mgrid[: shape[0], : shape[1]] / np.array(shape)[:, None, None]
+    wave = np.sin(2 * np.pi * xx)[..., None] * np.array([1.0, 0.5, -1.0])
+    return GREY * (1 + 0.4 * wave + 0.3 * yy[..., None])
+
+
+def _write_raw(path: Path, colour: np.ndarray, cfa: str = "GBRG") -> Path:
+    raw = mosaic(colour, cfa).astype(np.float32)
+    write_raw_exr(path, RawImage(raw, cfa, 0.01, "unfiltered"))
+    return path
+
+
+def _dispersion_model(path: Path, shape: tuple[int, int], direction: str = "to_reference"):
+    """A small polynomial spectral model (≤ 1 px lateral colour) fitted to exact keypoints."""
+    lens = Lens(shape, max_shift_px=1.0)
+    gy, gx = np.mgrid[4 : shape[0] - 4 : 8, 4 : shape[1] - 4 : 8].astype(float)
+    parts = []
+    for w in (450.0, 500.0, 550.0, 600.0, 650.0):
+        dx, dy = lens.displacement(gx.ravel(), gy.ravel(), w)
+        parts.append((gx.ravel(), gy.ravel(), dx, dy, np.full(gx.size, w)))
+    x, y, dx, dy, w = (np.concatenate(c) for c in zip(*parts, strict=True))
+    keypoints = DispersionKeypoints(
+        x, y, dx, dy, reference=600.0, image_shape=shape, wavelength_nm=w
+    )
+    model = fit_polynomial_model(
+        keypoints, direction=direction, max_degree_xy=2, max_degree_lambda=2, folds=2
+    )
+    return model.save(path)
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """Raw EXRs (grey, smooth, RGGB grey, odd-sized), a response CSV and dispersion models."""
+    folder = tmp_path_factory.mktemp("reconstruct-inputs")
+    response = folder / "response.csv"
+    write_response_csv(camera_response("Nikon 5100 (NPL)"), response)
+    odd = folder / "odd.exr"
+    write_raw_exr(odd, RawImage(np.ones((63, 96), np.float32), "GBRG", 0.01, "unfiltered"))
+    spectral = folder / "spectral.exr"
+    cube = np.ones((*SHAPE, 2), np.float32)
+    write_spectral_exr(spectral, SpectralImage(cube, np.array([500.0, 600.0]), {}))
+    return {
+        "grey": _write_raw(folder / "grey.exr", np.broadcast_to(GREY, (*SHAPE, 3)).copy()),
+        "smooth": _write_raw(folder / "smooth.exr", _smooth_colour()),
+        "rggb": _write_raw(folder / "rggb.exr", np.broadcast_to(GREY, (*SHAPE, 3)).copy(), "RGGB"),
+        "odd": odd,
+        "spectral": spectral,
+        "response": response,
+        "model": _dispersion_model(folder / "model.yaml", SHAPE),
+        "model_small": _dispersion_model(folder / "small.yaml", (32, 48)),
+        "model_from": _dispersion_model(folder / "from.yaml", SHAPE, "from_reference"),
+    }
+
+
+def test_smooth_scene_known_answer(inputs, tmp_path: Path, capsys) -> None:
+    """Fixed weight, no dispersion, exact L2 solve: band centres, shape, raw colour, log."""
+    out = tmp_path / "out"
+    args = ["reconstruct", str(inputs["smooth"]), "--response", str(inputs["response"]),
+            "--bands", BANDS, "--weights", "fixed:0.001", "--no-nonneg", "--patch-px", "32",
+            "--out", str(out)]  # fmt: skip
+    assert main(args) == 0
+    printed = capsys.readouterr().out
+    assert "weights: 0.001 (fixed)" in printed
+    assert "patches: 6, 0 flat; no dispersion model" in printed
+    assert f"wrote {out / 'spectral.exr'}" in printed
+
+    spectral = read_spectral_exr(out / "spectral.exr")
+    np.testing.assert_array_equal(spectral.wavelengths_nm, [400, 450, 500, 550, 600, 650, 700])
+    assert spectral.cube.shape == (*SHAPE, 7) and spectral.cube.dtype == np.float32
+    assert np.all(np.isfinite(spectral.cube))
+    meta = spectral.labkit
+    assert meta["kind"] == "spectral" and meta["input"] == str(inputs["smooth"])
+    assert meta["response"] == str(inputs["response"]) and meta["rig"] is None
+    assert meta["prior"] == "L2" and meta["nonneg"] is False
+    assert meta["weights"] == {"requested": "fixed:0.001", "criterion": "fixed", "values": [0.001]}
+    assert meta["raw"]["cfa"] == "GBRG" and meta["basis"]["spacing_nm"] == 50.0
+
+    # the data term: the raw colour at each pixel's CFA site reproduces the raw to 0.2 %
+    raw_colour = _read_rgb_exr(out / "raw_colour.exr")
+    assert raw_colour.shape == (*SHAPE, 3)
+    raw = mosaic(_smooth_colour(), "GBRG")
+    np.testing.assert_allclose(mosaic(raw_colour, "GBRG"), raw, rtol=2e-3)
+
+    log = json.loads((out / "log.json").read_text())
+    assert log["weights"]["values"] == [0.001] and log["weights"]["criterion"] == "fixed"
+    assert log["arguments"]["weights"] == "fixed:0.001" and log["arguments"]["bands"] == BANDS
+    assert log["bands_nm"] == [400, 450, 500, 550, 600, 650, 700]
+    assert log["patches"]["count"] == len(log["patch_records"]) == 6
+    assert log["options"]["patch_px"] == 32 and log["options"]["nonneg"] is False
+
+    with Image.open(out / "preview.png") as preview:
+        assert preview.size == (SHAPE[1], SHAPE[0]) and preview.mode == "RGB"
+
+
+def test_flat_grey_with_rig_and_dispersion(
+    inputs, sim_rig_path: Path, tmp_path: Path, capsys
+) -> None:
+    """rigs/simulated.yaml supplies response and CFA; flat patches skip Φ; colour back to 1e-3."""
+    out = tmp_path / "out"
+    args = ["reconstruct", str(inputs["grey"]), "--rig", str(sim_rig_path), "--bands", BANDS,
+            "--dispersion", str(inputs["model"]), "--weights", "fixed:0.01", "--patch-px", "32",
+            "--pad-px", "8", "--quiet", "--out", str(out)]  # fmt: skip
+    assert main(args) == 0
+    printed = capsys.readouterr().out
+    assert "Φ used on 0, skipped on 6" in printed and "6 flat" in printed
+    raw_colour = _read_rgb_exr(out / "raw_colour.exr")
+    np.testing.assert_allclose(raw_colour, np.broadcast_to(GREY, (*SHAPE, 3)), rtol=1e-3)
+    spectral = read_spectral_exr(out / "spectral.exr")
+    assert spectral.cube.min() >= 0, "--nonneg is the default"
+    assert spectral.labkit["rig"] == str(sim_rig_path)
+    assert spectral.labkit["response"] == "Nikon 5100 (NPL)"
+    assert spectral.labkit["dispersion_model"] == str(inputs["model"])
+    log = json.loads((out / "log.json").read_text())
+    assert log["patches"]["phi_skipped_flat"] + log["patches"]["phi_skipped_negligible"] == 6
+    assert log["dispersion"]["variables"] == "xylambda"
+
+
+def test_colour_latent_writes_no_spectral_image(inputs, tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    args = ["reconstruct", str(inputs["grey"]), "--latent", "colour", "--weights", "fixed:0.01",
+            "--patch-px", "32", "--out", str(out)]  # fmt: skip
+    assert main(args) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["log.json", "preview.png", "raw_colour.exr"]
+    np.testing.assert_allclose(
+        _read_rgb_exr(out / "raw_colour.exr"), np.broadcast_to(GREY, (*SHAPE, 3)), rtol=1e-3
+    )
+
+
+def test_progress_bar_only_on_a_terminal(
+    inputs, tmp_path: Path, capsys, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    args = ["reconstruct", str(inputs["grey"]), "--response", str(inputs["response"]),
+            "--weights", "fixed:0.01", "--patch-px", "32"]  # fmt: skip
+    assert main([*args, "--out", str(tmp_path / "a")]) == 0
+    assert "patch" not in capsys.readouterr().err, "stderr is not a terminal: no bar"
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True)
+    assert main([*args, "--out", str(tmp_path / "b")]) == 0
+    assert "6/6" in capsys.readouterr().err
+    assert main([*args, "--quiet", "--out", str(tmp_path / "c")]) == 0
+    assert "patch" not in capsys.readouterr().err
+
+
+def test_tcp_scheduler_gives_the_same_image(inputs, tmp_path: Path, capsys) -> None:
+    """--scheduler tcp://… runs the same patches on a dask.distributed cluster."""
+    from distributed import LocalCluster
+
+    args = ["reconstruct", str(inputs["smooth"]), "--response", str(inputs["response"]),
+            "--bands", BANDS, "--weights", "fixed:0.001", "--no-nonneg",
+            "--patch-px", "32"]  # fmt: skip
+    assert main([*args, "--out", str(tmp_path / "local")]) == 0
+    with LocalCluster(
+        n_workers=1, threads_per_worker=2, processes=False, protocol="tcp://", host="127.0.0.1",
+        dashboard_address=None,
+    ) as cluster:  # fmt: skip
+        address = cluster.scheduler_address
+        assert main([*args, "--scheduler", address, "--out", str(tmp_path / "tcp")]) == 0
+    local = read_spectral_exr(tmp_path / "local" / "spectral.exr").cube
+    remote = read_spectral_exr(tmp_path / "tcp" / "spectral.exr").cube
+    np.testing.assert_allclose(remote, local, rtol=1e-6, atol=1e-9)
+    log = json.loads((tmp_path / "tcp" / "log.json").read_text())
+    assert log["options"]["scheduler"] == address and log["patches"]["count"] == 6
+
+
+def test_unreachable_scheduler_is_refused_before_work(inputs, tmp_path: Path, capsys) -> None:
+    import socket
+
+    with socket.socket() as probe:  # a port nobody listens on
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    out = tmp_path / "out"
+    args = ["reconstruct", str(inputs["grey"]), "--response", str(inputs["response"]),
+            "--scheduler", f"tcp://127.0.0.1:{port}", "--out", str(out)]  # fmt: skip
+    assert main(args) == 2
+    assert "cannot reach the Dask scheduler" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_help_documents_every_option(capsys) -> None:
+    commands = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    parser = commands.choices["reconstruct"]
+    with pytest.raises(SystemExit) as exit_info:
+        main(["reconstruct", "--help"])
+    assert exit_info.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    for action in parser._actions:
+        assert action.help, f"{action.option_strings or action.dest} has no help"
+        for option in action.option_strings:
+            assert option in text
+    for option in ("--rig", "--response", "--bands", "--dispersion", "--prior", "--nonneg",
+                   "--no-nonneg", "--weights", "--latent", "--reference", "--rtol", "--patch-px",
+                   "--pad-px", "--scheduler", "--out", "--quiet"):  # fmt: skip
+        assert option in text
+    for prior in PRIORS:
+        assert prior in text, f"prior {prior} is missing from the --prior help"
+    for word in ("auto:dmc", "auto:mdc", "fixed:W", "mean-colour", "spectral.exr",
+                 "raw_colour.exr", "preview.png", "log.json", "tcp://"):  # fmt: skip
+        assert word in text
+
+
+@pytest.mark.parametrize(
+    ("raw", "options", "message"),
+    [
+        ("missing", ["--response", "R"], "raw image {missing} does not exist"),
+        ("spectral", ["--response", "R"], "no 'raw' channel"),
+        ("odd", ["--response", "R"], "63×96 px; a Bayer mosaic needs an even number"),
+        ("grey", [], "needs the camera response: give --rig RIG.yaml or --response"),
+        ("grey", ["--response", "R", "--rig", "RIG"], "either --rig"),
+        ("grey", ["--response", "missing.csv"], "--response: camera response file"),
+        ("rggb", ["--rig", "RIG"], "CFA layouts disagree: {rggb} says RGGB, {rig} says GBRG"),
+        ("grey", ["--response", "R", "--bands", "400,4x0"], "--bands '400,4x0': expected comma"),
+        ("grey", ["--response", "R", "--bands", "500,400"], "increasing order"),
+        ("grey", ["--response", "R", "--bands", "400,450,520"], "equally spaced"),
+        ("grey", ["--response", "R", "--bands", "300,400,500"], "not covered by the camera"),
+        ("grey", ["--response", "R", "--prior", "TV"],
+         "unknown --prior 'TV'; use one of " + ", ".join(PRIORS)),
+        ("grey", ["--response", "R", "--weights", "best"], "--weights 'best': use auto:dmc"),
+        ("grey", ["--response", "R", "--weights", "fixed:0.1,0.2"], "L2 has 1 term(s)"),
+        ("grey", ["--response", "R", "--weights", "fixed:x"], "must be numbers"),
+        ("grey", ["--response", "R", "--weights", "auto:msec"], "only the Python API"),
+        ("grey", ["--response", "R", "--dispersion", "model_small"],
+         "calibrated for 32×48 px images but the raw image is 64×96 px"),
+        ("grey", ["--response", "R", "--dispersion", "model_from"], "needs to_reference"),
+        ("grey", ["--response", "R", "--dispersion", "missing.yaml"], "does not exist"),
+        ("grey", ["--response", "R", "--latent", "colour", "--bands", BANDS], "no --bands"),
+        ("grey", ["--response", "R", "--patch-px", "30.5"], "--patch-px is '30.5'"),
+        ("grey", ["--response", "R", "--scheduler", "mpi"], "--scheduler is 'mpi'"),
+    ],
+)  # fmt: skip
+def test_bad_input_is_one_line_and_writes_nothing(
+    inputs, sim_rig_path: Path, tmp_path: Path, capsys, raw: str, options: list, message: str
+) -> None:
+    names = {**inputs, "missing": tmp_path / "missing.exr", "rig": sim_rig_path}
+    values = {"R": str(inputs["response"]), "RIG": str(sim_rig_path)}
+    values.update({k: str(v) for k, v in inputs.items()})
+    options = [values.get(o, str(tmp_path / o) if o.startswith("missing") else o) for o in options]
+    out = tmp_path / "out"
+    assert main(["reconstruct", str(names[raw]), *options, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("labkit: error: ") and err.count("\n") == 1, err
+    assert message.format(**{k: str(v) for k, v in names.items()}) in err
+    assert not out.exists(), "nothing is written on error"
+
+
+def test_out_that_is_a_file_is_refused(inputs, tmp_path: Path, capsys) -> None:
+    out = tmp_path / "taken"
+    out.write_text("keep me")
+    args = ["reconstruct", str(inputs["grey"]), "--response", str(inputs["response"]),
+            "--out", str(out)]  # fmt: skip
+    assert main(args) == 2
+    assert "exists and is not a folder" in capsys.readouterr().err
+    assert out.read_text() == "keep me"
