@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 from _problems import RESPONSE, blobs
@@ -156,3 +158,43 @@ def test_weights_by_mse_are_locally_optimal() -> None:
     best = mse(w)
     assert best <= 1.02 * mse(0.3 * w)
     assert best <= 1.02 * mse(3 * w)
+
+
+def test_local_cluster_of_two_processes_equals_the_local_scheduler() -> None:
+    """The same image on a dask.distributed LocalCluster (2 worker processes) to 1e-6."""
+    from distributed import Client, LocalCluster
+
+    rng = np.random.default_rng(4)
+    space = LatentSpace.spectral(RESPONSE_RGB)
+    model = spectral_model(ConstantField((0.6, -0.4), per_nm=True), shape=(64, 96))
+    raw = build_formation(space, (64, 96), "GBRG", model=model).forward(
+        blobs((64, 96), space.channels, rng)
+    )
+    settings = {
+        "cfa": "GBRG",
+        "response": RESPONSE_RGB,
+        "dispersion": model,
+        "weights": "fixed:0.003",
+        "patch_px": 32,
+        "pad_px": 8,
+        "flat_threshold": None,
+    }
+    local = reconstruct(raw, scheduler="threads", **settings)
+    with (
+        LocalCluster(
+            n_workers=2,
+            threads_per_worker=1,
+            processes=True,
+            host="127.0.0.1",
+            dashboard_address=None,
+        ) as cluster,
+        Client(cluster) as client,
+    ):
+        remote = reconstruct(raw, scheduler=client, **settings)
+        worker_pids = set(client.run(os.getpid).values())
+    assert len(worker_pids) == 2 and os.getpid() not in worker_pids
+    assert local.log["patches"]["phi_used"] == 6
+    np.testing.assert_allclose(remote.spectral, local.spectral, rtol=1e-6, atol=1e-6)
+    assert [r["iterations"] for r in remote.log["patch_records"]] == [
+        r["iterations"] for r in local.log["patch_records"]
+    ]
