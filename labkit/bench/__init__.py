@@ -4,6 +4,7 @@ from labkit.bench.calibrate import bench_calibrate
 from labkit.bench.capture import bench_capture
 from labkit.bench.harness import Measurement, machine_info, measure, write_report
 from labkit.bench.hdr import bench_hdr
+from labkit.bench.reconstruct import bench_reconstruct
 from labkit.bench.sim import bench_sim
 
 #: Stage name → benchmark function (rig path, repeats) → (cases, notes).
@@ -12,6 +13,7 @@ BENCHMARKS = {
     "capture": bench_capture,
     "hdr": bench_hdr,
     "calibrate": bench_calibrate,
+    "reconstruct": bench_reconstruct,
 }
 
 __all__ = [
@@ -20,6 +22,7 @@ __all__ = [
     "bench_calibrate",
     "bench_capture",
     "bench_hdr",
+    "bench_reconstruct",
     "bench_sim",
     "machine_info",
     "measure",

@@ -25,12 +25,15 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 def _bench(args: argparse.Namespace) -> int:
     from labkit.bench import BENCHMARKS, write_report
+    from labkit.bench.reconstruct import accepts_out
     from labkit.rig import default_rig_path
 
     stages = list(BENCHMARKS) if args.stage == "all" else [args.stage]
     results, notes = {}, []
     for stage in stages:
-        cases, stage_notes = BENCHMARKS[stage](args.rig or default_rig_path(), repeats=args.repeats)
+        function = BENCHMARKS[stage]
+        extra = {"out": args.out} if accepts_out(function) else {}
+        cases, stage_notes = function(args.rig or default_rig_path(), repeats=args.repeats, **extra)
         results[stage] = cases
         notes += stage_notes
         for case in cases:

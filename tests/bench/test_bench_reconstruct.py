@@ -1,0 +1,65 @@
+"""`labkit bench reconstruct`: its simulated truth and error plumbing give known answers."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+
+from labkit.bench.reconstruct import errors, lens_model, simulated_case
+from labkit.rig import default_rig_path
+
+
+def test_lens_model_undoes_the_lens() -> None:
+    """The analytic to_reference model is minus the lens' displacement (first order)."""
+    case = simulated_case(default_rig_path(), (64, 80), "colorchecker")
+    model = case["model"]
+    from labkit.rig import load_rig
+    from labkit.sim import SimulatedRig
+
+    lens = SimulatedRig(load_rig(default_rig_path()), shape=(64, 80)).lens
+    x, y = np.array([0.0, 79.0]), np.array([0.0, 63.0])
+    for wavelength in (450.0, 650.0):
+        ex, ey = model.displacement(x, y, wavelength)
+        dx, dy = lens.relative_displacement(x, y, wavelength, reference_nm=600.0)
+        np.testing.assert_allclose(np.hypot(ex + dx, ey + dy), 0.0, atol=0.02)
+        assert np.all(np.hypot(dx, dy) > 0.2)
+    assert lens_model(lens).direction == "to_reference"
+
+
+def test_a_perfect_reconstruction_scores_zero_and_a_biased_one_does_not() -> None:
+    case = simulated_case(default_rig_path(), (48, 64), "colorchecker", flat_fraction=0.5)
+    bands = np.linspace(430.0, 650.0, 5)
+    truth = case["truth"](bands)
+    wall = np.isnan(truth[..., 0])
+    assert 0.4 < wall.mean() < 0.6  # the grey wall has no spectral truth
+    perfect = SimpleNamespace(
+        wavelengths_nm=bands,
+        spectral=np.nan_to_num(truth).astype(np.float32),
+        raw_colour=case["colour"].astype(np.float32),
+    )
+    scores = errors(case, perfect)
+    assert scores["spectral_rmse_rel"] < 1e-6 and scores["colour_rmse_G"] < 1e-6
+    biased = SimpleNamespace(
+        wavelengths_nm=bands,
+        spectral=perfect.spectral * np.linspace(0.8, 1.2, 5),  # removed by registration
+        raw_colour=perfect.raw_colour * 1.1,
+    )
+    scores = errors(case, biased)
+    assert scores["spectral_rmse_rel"] < 1e-5
+    assert abs(scores["colour_rmse_G"] - 0.1 * _mean_over_peak(case, 1)) < 0.02
+    # the colour truth is the render: away from edges the raw differs by the planted noise
+    residual = case["raw"] - _mosaic_of(case)
+    robust_std = 1.4826 * np.median(np.abs(residual - np.median(residual)))
+    assert abs(robust_std / np.max(case["colour"]) - 0.002) < 0.0004
+
+
+def _mean_over_peak(case, channel: int) -> float:
+    inner = case["colour"][8:-8, 8:-8]
+    return float(np.sqrt(np.mean(inner[..., channel] ** 2)) / inner.max())
+
+
+def _mosaic_of(case) -> np.ndarray:
+    from labkit.cfa import mosaic
+
+    return mosaic(case["colour"], case["cfa"])
