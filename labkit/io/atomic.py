@@ -25,6 +25,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     temp = Path(temp_name)
     try:
         yield temp
+        os.chmod(temp, 0o666 & ~_UMASK)  # mkstemp makes 0600; give the usual mode
         fd = os.open(temp, os.O_RDONLY)
         try:
             os.fsync(fd)
@@ -43,6 +44,16 @@ def atomic_write(path: str | Path, mode: str = "wb") -> Iterator[IO]:
     """Open a file handle whose content replaces `path` atomically (see :func:`atomic_path`)."""
     with atomic_path(path) as temp, open(temp, mode) as handle:
         yield handle
+
+
+def _read_umask() -> int:
+    """The process umask (read once at import: setting it is not thread-safe)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+_UMASK = _read_umask()
 
 
 def fsync_directory(folder: str | Path) -> None:

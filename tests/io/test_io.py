@@ -69,3 +69,13 @@ def test_display_downsampling_and_png(tmp_path: Path) -> None:
     from PIL import Image
 
     assert np.array_equal(np.asarray(Image.open(tmp_path / "p.png")), shown)
+
+
+def test_atomic_files_get_the_usual_mode_not_mkstemps_0600(tmp_path) -> None:
+    import stat
+
+    from labkit.io.atomic import _UMASK, write_text_atomic
+
+    write_text_atomic(tmp_path / "note.txt", "hello")
+    assert stat.S_IMODE((tmp_path / "note.txt").stat().st_mode) == 0o666 & ~_UMASK
+    assert (tmp_path / "note.txt").read_text() == "hello"
