@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from labkit.bench.harness import Measurement
+from labkit.bench.harness import Measurement, peak_rss_mib
 from labkit.rig import load_rig
 
 TARGET_S = 60.0
@@ -43,14 +43,6 @@ def model_error(model, lens, reference_nm: float, wavelengths_nm, *, step_px: in
         "max_px": float(everything.max()),
         "worst_band_rms_px": max(float(np.sqrt(np.mean(e**2))) for e in errors.values()),
     }
-
-
-def _peak_rss_mib() -> float:
-    import resource
-
-    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    children = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    return max(own, children) / 1024
 
 
 def bench_calibrate(rig_path: Path, *, repeats: int = 1) -> tuple[list[Measurement], list[str]]:
@@ -105,7 +97,7 @@ def bench_calibrate(rig_path: Path, *, repeats: int = 1) -> tuple[list[Measureme
                 f"calibrate dispersion: {name}",
                 seconds,
                 times,
-                _peak_rss_mib(),
+                peak_rss_mib(),
                 target,
                 None if target is None else seconds <= target,
                 {

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import inspect
 import json
 import os
 import platform
@@ -71,6 +72,20 @@ def measure(
     median = statistics.median(times)
     passed = None if target_s is None else median <= target_s
     return Measurement(name, median, times, peak, target_s, passed)
+
+
+def peak_rss_mib() -> float:
+    """Largest resident set of this process or of any finished child process so far, MiB."""
+    import resource
+
+    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    children = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    return max(own, children) / 1024
+
+
+def accepts_out(function: Callable[..., Any]) -> bool:
+    """Whether a benchmark function takes the output folder (to write plots there)."""
+    return "out" in inspect.signature(function).parameters
 
 
 def machine_info() -> dict[str, Any]:

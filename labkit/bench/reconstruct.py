@@ -15,7 +15,6 @@ image with the dispersion-free render.
 
 from __future__ import annotations
 
-import inspect
 import io
 import os
 import time
@@ -24,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from labkit.bench.harness import Measurement
+from labkit.bench.harness import Measurement, peak_rss_mib
 from labkit.rig import load_rig
 
 TARGET_S = 10.0
@@ -35,7 +34,7 @@ NOISE = 0.002
 """Gaussian noise, fraction of the brightest raw value."""
 
 
-class _LensField:
+class LensField:
     """The lens' first-order ``to_reference`` field e(q, λ) = −u(q)(s(λ) − s(λ_ref))."""
 
     kind = "simulated lens (first order)"
@@ -65,7 +64,7 @@ def lens_model(lens, *, reference_nm: float = 600.0):
         direction="to_reference",
         reference=reference_nm,
         image_shape=(rows, cols),
-        fields={"spectral": _LensField(lens, reference_nm)},
+        fields={"spectral": LensField(lens, reference_nm)},
         region=CalibratedRegion.from_points(x, y, np.array([400.0, 700.0])),
     )
 
@@ -147,14 +146,6 @@ def errors(case: dict[str, Any], result) -> dict[str, float]:
     }
 
 
-def _peak_rss_mib() -> float:
-    import resource
-
-    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    children = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    return max(own, children) / 1024
-
-
 def _run(case: dict[str, Any], **options) -> tuple[Any, float]:
     from reconstruction import reconstruct
 
@@ -176,7 +167,7 @@ def _measurement(name, seconds, times, target, case, result, extra) -> Measureme
         name,
         seconds,
         times,
-        _peak_rss_mib(),
+        peak_rss_mib(),
         target,
         None if target is None else seconds <= target,
         {
@@ -315,12 +306,6 @@ def _plot(results: list[Measurement], out: Path) -> str:
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png", dpi=120)
     plt.close(fig)
-    out.mkdir(parents=True, exist_ok=True)
     with atomic_write(out / "reconstruct_time_vs_error.png") as handle:
         handle.write(buffer.getvalue())
     return "reconstruct_time_vs_error.png"
-
-
-def accepts_out(function) -> bool:
-    """Whether a benchmark function takes the output folder (for plots)."""
-    return "out" in inspect.signature(function).parameters

@@ -25,7 +25,7 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 def _bench(args: argparse.Namespace) -> int:
     from labkit.bench import BENCHMARKS, write_report
-    from labkit.bench.reconstruct import accepts_out
+    from labkit.bench.harness import accepts_out
     from labkit.rig import default_rig_path
 
     stages = list(BENCHMARKS) if args.stage == "all" else [args.stage]

@@ -48,26 +48,14 @@ def rig_lens_model(shape: tuple[int, int] = (2048, 2448)):
     """
     from _helpers import planted_dispersion_model
 
+    from labkit.bench.reconstruct import LensField
     from labkit.rig import load_rig
     from labkit.sim.lens import Lens
 
     rig = load_rig("labkit/rigs/simulated.yaml")
     lens = Lens(shape, **rig.sim.lens.model_dump())
-    reference = float(lens.spectral_factor(593.06))
-
-    class LensField:
-        kind = "test"
-
-        def evaluate(self, points: np.ndarray) -> np.ndarray:
-            ux, uy = lens.radial_field(points[:, 0], points[:, 1])
-            s = lens.spectral_factor(points[:, 2]) - reference
-            return -np.stack([ux * s, uy * s], axis=1)
-
-        def to_dict(self) -> dict:
-            return {"kind": self.kind}
-
     return planted_dispersion_model(
-        {"spectral": LensField()},
+        {"spectral": LensField(lens, 593.06)},
         shape=shape,
         direction="to_reference",
         wavelength_span=(400.0, 700.0),
