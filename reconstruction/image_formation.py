@@ -23,7 +23,8 @@ dispersion-free colour matrix, and
 Compared with the thesis, which integrates the spectrum over the Φ samples themselves,
 this keeps the colour integral as accurate as the response's sampling whatever the number
 of Φ samples, and makes a patch whose Φ is dropped see exactly the same colours. M and all
-Φ_j are folded into one sparse matrix (four bilinear weights per raw pixel and sample).
+Φ_j and the C_j are folded into one sparse matrix over the latent image (its few distinct
+source pixels per raw pixel, times n).
 """
 
 from __future__ import annotations
@@ -227,35 +228,48 @@ class ImageFormation(LinearOperator):
         return ImageFormation(self.domain_shape[:2], self.cfa, self.colour_matrix[None])
 
     def _combined(self, matrices: list[sp.csr_matrix]) -> sp.csr_matrix:
-        """M Σ_j Φ_j as one (rows·cols) × (J·rows·cols·3) matrix on stacked colour images."""
+        """``M Σ_j Φ_j (· C_jᵀ)`` as one (rows·cols) × (rows·cols·n) matrix on the latent image.
+
+        Consecutive samples' bilinear stencils overlap almost entirely (they are ≤ 0.1 px
+        apart), so folding the colour matrices in leaves only the few distinct source pixels
+        of each raw pixel times n bands: far fewer products than mixing every sample's
+        colour image and then interpolating it.
+        """
         npx = int(np.prod(self.domain_shape[:2]))
+        n = self.domain_shape[2]
         channel = self.channel_index.ravel()
-        rows_all, cols_all, data_all = [], [], []
+        rows, cols, weights, columns = [], [], [], []
         for j, matrix in enumerate(matrices):
             counts = np.diff(matrix.indptr)
-            rows = np.repeat(np.arange(npx), counts)
-            rows_all.append(rows)
-            cols_all.append(j * 3 * npx + 3 * matrix.indices.astype(np.int64) + channel[rows])
-            data_all.append(matrix.data)
-        return sp.csr_matrix(
-            (np.concatenate(data_all), (np.concatenate(rows_all), np.concatenate(cols_all))),
-            shape=(npx, len(matrices) * 3 * npx),
+            r = np.repeat(np.arange(npx, dtype=np.int64), counts)
+            rows.append(r)
+            cols.append(matrix.indices.astype(np.int64))
+            weights.append(matrix.data)
+            columns.append(3 * j + channel[r])
+        rows_all, cols_all = np.concatenate(rows), np.concatenate(cols)
+        pairs, which = np.unique(rows_all * npx + cols_all, return_inverse=True)
+        # per distinct (raw pixel, source pixel): Σ_j w_j C_j[channel, :]
+        gather = sp.csr_matrix(
+            (np.concatenate(weights), (which, np.concatenate(columns))),
+            shape=(pairs.size, 3 * len(matrices)),
         )
+        values = gather @ self.colour_matrices.reshape(-1, n)
+        per_row = np.bincount(pairs // npx, minlength=npx) * n
+        indptr = np.concatenate([[0], np.cumsum(per_row)])
+        indices = ((pairs % npx)[:, None] * n + np.arange(n)).ravel()
+        return sp.csr_matrix((values.ravel(), indices, indptr), shape=(npx, npx * n))
 
     def _forward(self, x: np.ndarray) -> np.ndarray:
         x = x.astype(np.float64, copy=False)
         if self._matrix is None:
             return self.mosaic.forward(x @ self.colour_matrices[0].T)
-        stacked = np.einsum("yxn,jcn->jyxc", x, self.colour_matrices, optimize=True)
-        return (self._matrix @ stacked.ravel()).reshape(self.range_shape)
+        return (self._matrix @ x.ravel()).reshape(self.range_shape)
 
     def _adjoint(self, y: np.ndarray) -> np.ndarray:
         y = y.astype(np.float64, copy=False)
-        rows, cols = self.range_shape
         if self._matrix is None:
             return self.mosaic.adjoint(y) @ self.colour_matrices[0]
-        stacked = (self._matrix_t @ y.ravel()).reshape(-1, rows, cols, 3)
-        return np.einsum("jyxc,jcn->yxn", stacked, self.colour_matrices, optimize=True)
+        return (self._matrix_t @ y.ravel()).reshape(self.domain_shape)
 
     def fourier_colour(self) -> np.ndarray:
         """Colour matrix per spatial frequency for the FFT solver.

@@ -14,9 +14,11 @@ What a patch may skip
   ``negligible_shift_px`` (0.05 px) at any wavelength the camera sees, Φ is dropped and the
   quadratic step is solved exactly by FFT instead of by conjugate gradients.
 * **Flat patches.** If every Bayer channel is flat — the 95th percentile of same-channel
-  differences 2 px apart is below ``flat_threshold`` times the patch's mean level —
-  translating it changes nothing measurable, so Φ is dropped as well, and ADMM starts
-  from the exact unconstrained (dispersion-free, L2) solution instead of from zero.
+  differences 2 px apart exceeds what the image's noise alone gives (:func:`noise_sigma`)
+  by less than ``flat_threshold`` times the patch's mean level — translating it changes
+  nothing measurable, so Φ is dropped as well, and ADMM starts from the exact
+  unconstrained (dispersion-free, L2) solution instead of from zero. Without the noise
+  allowance a 0.2 % noise level alone would already make every patch "textured".
 
 Per-patch diagnostics (solver report, what was skipped, time) travel in an extra plane of
 the output blocks, so they survive any scheduler, and are returned as records.
@@ -73,13 +75,17 @@ class PatchOptions:
     negligible_shift_px : float
         Drop Φ where no pixel moves more than this, px.
     flat_threshold : float
-        Relative texture below which a patch counts as flat (None: never).
+        Relative texture above the noise below which a patch counts as flat (None: never).
+    noise_sigma : float
+        White-noise standard deviation of the (normalised) raw image, from
+        :func:`noise_sigma`; 0 counts all variation as texture.
     """
 
-    patch_px: int = 128
-    pad_px: int = 16
+    patch_px: int = 48
+    pad_px: int = 8
     negligible_shift_px: float = 0.05
     flat_threshold: float | None = 0.01
+    noise_sigma: float = 0.0
 
     def __post_init__(self) -> None:
         if self.patch_px < 8 or self.patch_px % 2:
@@ -110,12 +116,46 @@ def chunk_sizes(length: int, target: int) -> tuple[int, ...]:
     return tuple(2 * (base + (1 if i < extra else 0)) for i in range(count))
 
 
-def texture(raw: np.ndarray) -> float:
-    """Relative texture of a raw patch: p95 of |same-channel 2-px differences| / mean level."""
+NOISE_BLOCK_PX = 16
+#: p95 of |a − b| for independent N(0, σ²) samples, in σ (1.96 √2), with 15 % allowance
+#: for :func:`noise_sigma`'s low-percentile estimate (≈ 0.91 σ on pure noise).
+_NOISE_P95 = 1.96 * np.sqrt(2.0) * 1.15
+
+
+def noise_sigma(raw: np.ndarray) -> float:
+    """White-noise σ of a raw mosaic, in its units (0 for images under 24 px).
+
+    Same-channel second differences ``x[i−2] − 2x[i] + x[i+2]`` (along rows and columns)
+    cancel smooth shading; their median absolute value per 16×16-px block over
+    ``0.6745 √6`` estimates σ there, and the 10th percentile over blocks keeps edges and
+    texture (which only ever add) out of it. An image with no smooth area at all gets an
+    overestimate, and so more patches taken as flat: pass ``flat_threshold=None`` there.
+    """
+    raw = np.asarray(raw, dtype=np.float64)
+    d2x = np.abs(raw[:, 4:] - 2 * raw[:, 2:-2] + raw[:, :-4])[2:-2]
+    d2y = np.abs(raw[4:] - 2 * raw[2:-2] + raw[:-4])[:, 2:-2]
+    b = NOISE_BLOCK_PX
+    rows, cols = (v - v % b for v in d2x.shape)
+    if rows == 0 or cols == 0:
+        return 0.0
+    blocks = np.concatenate(
+        [d[:rows, :cols].reshape(rows // b, b, cols // b, b) for d in (d2x, d2y)], axis=1
+    )
+    per_block = np.median(blocks.transpose(0, 2, 1, 3).reshape(rows // b, cols // b, -1), -1)
+    return float(np.percentile(per_block, 10) / (0.6745 * np.sqrt(6.0)))
+
+
+def texture(raw: np.ndarray, noise: float = 0.0) -> float:
+    """Relative texture of a raw patch above its noise.
+
+    ``(p95 |same-channel 2-px difference| − 1.96 √2 · 1.15 σ) / mean level``, at least 0;
+    with ``noise = 0`` the plain relative p95.
+    """
     dx = np.abs(raw[:, 2:] - raw[:, :-2])
     dy = np.abs(raw[2:, :] - raw[:-2, :])
     level = max(float(np.mean(np.abs(raw))), 1e-12)
-    return float(max(np.percentile(dx, 95), np.percentile(dy, 95)) / level)
+    p95 = max(np.percentile(dx, 95), np.percentile(dy, 95))
+    return float(max(p95 - _NOISE_P95 * noise, 0.0) / level)
 
 
 def max_dispersion(
@@ -154,7 +194,7 @@ def solve_patch(
     start = time.perf_counter()
     shape = raw.shape
     record = dict.fromkeys(_FIELDS, 0.0)
-    record["texture"] = texture(raw)
+    record["texture"] = texture(raw, options.noise_sigma)
     flat = options.flat_threshold is not None and record["texture"] < options.flat_threshold
     phi_state = 0
     use_model = None

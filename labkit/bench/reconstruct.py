@@ -219,7 +219,7 @@ def bench_reconstruct(
         ("Lap2, 7 bands", {"prior": "Lap2"}, 7),
         ("L1, 7 bands", {"prior": "L1"}, 7),
         ("L2, 7 bands, no Φ", {"prior": "L2", "dispersion": None}, 7),
-        ("L2, 7 bands, patch 64", {"prior": "L2", "patch_px": 64}, 7),
+        ("L2, 7 bands, patch 128", {"prior": "L2", "patch_px": 128, "pad_px": 16}, 7),
     ]
     for name, options, count in variants:
         options = {"dispersion": variant_case["model"], "weights": weights, **options}
@@ -236,10 +236,15 @@ def bench_reconstruct(
             )
         )
 
-    for label, fraction in (("fully textured", 0.0), ("80 % flat", 0.8)):
+    scenes = (
+        ("fully textured", 0.0, {}),
+        ("80 % flat", 0.8, {}),
+        ("80 % flat, no skipping", 0.8, {"flat_threshold": None}),
+    )
+    for label, fraction, skipping in scenes:
         case = simulated_case(rig_path, SHAPE, "texture", flat_fraction=fraction)
         result, seconds = _run(
-            case, bands=bands7, dispersion=case["model"], weights=weights, prior="L2"
+            case, bands=bands7, dispersion=case["model"], weights=weights, prior="L2", **skipping
         )
         results.append(
             _measurement(
@@ -278,7 +283,7 @@ def bench_reconstruct(
     ]
     if os.environ.get("LABKIT_BENCH_FULL") != "1":
         notes.append(
-            "The full-size 2448×2048 case runs only with LABKIT_BENCH_FULL=1 (tens of minutes)."
+            "The full-size 2448×2048 case runs only with LABKIT_BENCH_FULL=1 (about 10 minutes)."
         )
     if out is not None:
         notes.append(f"Time against error: {_plot(results, Path(out))}")

@@ -196,6 +196,9 @@ class _QuadraticStep:
             out += coefficient * d.adjoint(d.forward(x))
         return out
 
+    def _precondition(self, r: np.ndarray) -> np.ndarray:
+        return self.solver.solve(r, refine=False)
+
     def solve(self, rhs: np.ndarray, x0: np.ndarray) -> np.ndarray:
         if self.exact:
             return self.solver.solve(rhs)
@@ -203,7 +206,7 @@ class _QuadraticStep:
             self.apply,
             rhs,
             x0=x0,
-            preconditioner=self.solver.solve,
+            preconditioner=self._precondition,
             rtol=self.cg_rtol,
             max_iter=self.cg_max_iter,
         )
@@ -365,14 +368,29 @@ class _Anderson:
 
     def __init__(self, memory: int) -> None:
         self.memory = memory
+        self._d_states: np.ndarray | None = None  # (memory, size) ring buffers of differences
+        self._d_residuals: np.ndarray | None = None
+        self._gram = np.zeros((memory, memory))  # ΔFᵀΔF, updated one column at a time
         self.reset()
 
     def reset(self) -> None:
-        self.d_states: list[np.ndarray] = []
-        self.d_residuals: list[np.ndarray] = []
+        self.count = 0  # stored differences
+        self.slot = 0  # where the next one goes
         self.last: tuple[np.ndarray, np.ndarray] | None = None
         self.best = np.inf
         self.accepted = 0
+
+    def _store(self, d_state: np.ndarray, d_residual: np.ndarray) -> None:
+        if self._d_states is None or self._d_states.shape[1] != d_state.size:
+            self._d_states = np.empty((self.memory, d_state.size))
+            self._d_residuals = np.empty((self.memory, d_state.size))
+        self._d_states[self.slot] = d_state
+        self._d_residuals[self.slot] = d_residual
+        self.count = min(self.count + 1, self.memory)
+        products = self._d_residuals[: self.count] @ d_residual
+        self._gram[self.slot, : self.count] = products
+        self._gram[: self.count, self.slot] = products
+        self.slot = (self.slot + 1) % self.memory
 
     def step(self, state: np.ndarray, mapped: np.ndarray) -> np.ndarray:
         self.accepted = 0
@@ -384,24 +402,21 @@ class _Anderson:
             self.reset()
         self.best = min(self.best, norm)
         if self.last is not None:
-            self.d_states.append(state - self.last[0])
-            self.d_residuals.append(residual - self.last[1])
-            if len(self.d_states) > self.memory:
-                self.d_states.pop(0)
-                self.d_residuals.pop(0)
+            self._store(state - self.last[0], residual - self.last[1])
         self.last = (state, residual)
-        if not self.d_states:
+        if self.count == 0:
             return mapped
-        d_residual = np.stack(self.d_residuals, axis=1)
-        gram = d_residual.T @ d_residual
+        m = self.count
+        d_residuals, d_states = self._d_residuals[:m], self._d_states[:m]
+        gram = self._gram[:m, :m]
         scale = np.sqrt(np.diag(gram))
         if not np.all(scale > 0):
             self.reset()
             return mapped
-        normalised = gram / np.outer(scale, scale) + 1e-10 * np.eye(scale.size)
-        gamma = np.linalg.solve(normalised, (d_residual.T @ residual) / scale) / scale
+        normalised = gram / np.outer(scale, scale) + 1e-10 * np.eye(m)
+        gamma = np.linalg.solve(normalised, (d_residuals @ residual) / scale) / scale
         self.accepted = 1
-        return mapped - np.stack(self.d_states, axis=1) @ gamma - d_residual @ gamma
+        return mapped - gamma @ d_states - gamma @ d_residuals
 
 
 def _unpack(vector: np.ndarray, splits: list[_Split]) -> None:

@@ -82,6 +82,19 @@ def test_flat_scene_is_reproduced_and_skipped() -> None:
     assert all(r["iterations"] <= 3 for r in result.log["patch_records"])
 
 
+def test_noisy_flat_scene_is_still_taken_as_flat() -> None:
+    """0.2 % noise on the grey mosaic: the noise allowance keeps every patch flat (without
+    it the plain texture statistic, ≈ 0.6 %, would not be below a 0.5 % threshold)."""
+    raw = grey_raw((64, 96))
+    raw = raw + np.random.default_rng(5).normal(0.0, 0.002 * raw.max(), raw.shape)
+    model = spectral_model(ConstantField((0.4, -0.3), per_nm=True), shape=(64, 96))
+    settings = {"cfa": "GBRG", "response": RESPONSE_RGB, "dispersion": model}
+    result = reconstruct(raw, weights="fixed:0.01", flat_threshold=0.005, **settings)
+    assert result.log["noise_sigma"] == pytest.approx(0.002 * raw.max(), rel=0.15)
+    assert result.log["patches"]["phi_skipped_flat"] == result.log["patches"]["count"]
+    np.testing.assert_allclose(result.raw_colour.mean(axis=(0, 1)), [0.3, 0.5, 0.2], rtol=2e-3)
+
+
 def test_negligible_dispersion_is_skipped_and_textured_patches_use_phi() -> None:
     rng = np.random.default_rng(0)
     space = LatentSpace.spectral(RESPONSE_RGB)
