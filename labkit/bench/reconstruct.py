@@ -156,15 +156,11 @@ def _run(case: dict[str, Any], **options) -> tuple[Any, float]:
     return result, time.perf_counter() - start
 
 
-def _isolated(raw: np.ndarray, options: dict[str, Any]) -> tuple[Any, float, float]:
-    """Reconstruct in this (child) process: result, seconds and this process' peak RSS, MiB."""
+def _isolated(case: dict[str, Any], options: dict[str, Any]) -> tuple[Any, float, float]:
+    """:func:`_run` in this (child) process, plus this process' peak RSS, MiB."""
     import resource
 
-    from reconstruction import reconstruct
-
-    start = time.perf_counter()
-    result = reconstruct(raw, **options)
-    seconds = time.perf_counter() - start
+    result, seconds = _run(case, **options)
     return result, seconds, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
@@ -173,10 +169,10 @@ def _run_isolated(case: dict[str, Any], **options) -> tuple[Any, float, float]:
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
-    options = {"cfa": case["cfa"], "response": case["response"], **options}
+    inputs = {key: case[key] for key in ("raw", "cfa", "response")}  # the truth won't pickle
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(max_workers=1, mp_context=context) as pool:
-        return pool.submit(_isolated, case["raw"], options).result()
+        return pool.submit(_isolated, inputs, options).result()
 
 
 def _bands(case: dict[str, Any], count: int) -> np.ndarray:
