@@ -1,4 +1,4 @@
-"""Figures people would rather look at than read: spectra of the rig, dispersion fields."""
+"""Figures people would rather look at than read: rig spectra, dispersion, crops, errors."""
 
 from __future__ import annotations
 
@@ -136,5 +136,103 @@ def plot_dispersion_field(
                 axis.plot(closed[:, 0], closed[:, 1], "k--", lw=0.8)
             axis.set_title(f"{label} vs {reference}")
             figure.colorbar(image, ax=axis, label=unit, shrink=0.8)
+    figure.tight_layout()
+    save_figure(figure, path)
+
+
+def plot_crops(
+    images: dict[str, np.ndarray],
+    windows: list[tuple[int, int, int]],
+    path: str | Path,
+    *,
+    tile_in: float = 2.2,
+) -> None:
+    """Zoomed crops of several display images, one row per image, one column per window.
+
+    Parameters
+    ----------
+    images : dict of str to ndarray (rows, cols, 3) uint8
+        Display images of the same size, by name.
+    windows : list of (row, col, side)
+        Top-left corner and side of each square crop, px.
+    path : str or Path
+        PNG to write.
+    tile_in : float
+        Size of each tile, inches.
+    """
+    figure, axes = plt.subplots(
+        len(images),
+        len(windows),
+        figsize=(tile_in * len(windows) + 1.6, tile_in * len(images)),
+        squeeze=False,
+    )
+    for i, (name, image) in enumerate(images.items()):
+        for j, (row, col, side) in enumerate(windows):
+            axis = axes[i, j]
+            axis.imshow(image[row : row + side, col : col + side], interpolation="nearest")
+            axis.set_xticks([])
+            axis.set_yticks([])
+            if j == 0:
+                axis.set_ylabel(name, fontsize=9)
+            if i == 0:
+                axis.set_title(f"x {col}–{col + side}, y {row}–{row + side}", fontsize=8)
+    figure.tight_layout()
+    save_figure(figure, path)
+
+
+def plot_patch_spectra(
+    truth: tuple[np.ndarray, np.ndarray],
+    estimates: dict[str, tuple[np.ndarray, np.ndarray]],
+    names: list[str],
+    path: str | Path,
+) -> None:
+    """Spectra of a few chart patches: truth (lines) against estimates (markers).
+
+    Parameters
+    ----------
+    truth : (wavelengths_nm (f,), spectra (k, f))
+        True spectra of k patches on a fine grid.
+    estimates : dict of str to (wavelengths_nm (n,), spectra (k, n))
+        Estimated spectra of the same patches, by method.
+    names : list of str
+        Patch names (k).
+    path : str or Path
+        PNG to write.
+    """
+    columns = min(3, len(names))
+    rows = -(-len(names) // columns)
+    figure, axes = plt.subplots(
+        rows, columns, figsize=(4.2 * columns, 3.0 * rows), squeeze=False, sharex=True
+    )
+    markers = "os^dv"
+    for k, name in enumerate(names):
+        axis = axes.flat[k]
+        axis.plot(truth[0], truth[1][k], "k-", lw=1.2, label="truth")
+        for m, (method, (wavelengths, spectra)) in enumerate(estimates.items()):
+            axis.plot(wavelengths, spectra[k], markers[m % 5] + "--", ms=4, lw=0.8, label=method)
+        axis.set_title(name, fontsize=9)
+        axis.set_ylim(bottom=0)
+    for axis in axes.flat[len(names) :]:
+        axis.set_visible(False)
+    for axis in axes[-1]:
+        axis.set_xlabel("wavelength (nm)")
+    axes.flat[0].legend(fontsize=7)
+    figure.tight_layout()
+    save_figure(figure, path)
+
+
+def plot_channel_errors(
+    values: dict[str, tuple[float, float, float]], path: str | Path, *, ylabel: str
+) -> None:
+    """Grouped bars of a per-channel figure (R, G, B) for each method."""
+    names = list(values)
+    x = np.arange(len(names))
+    figure, axis = plt.subplots(figsize=(max(6.0, 0.9 * len(names) + 2), 3.6))
+    for c, colour in enumerate("rgb"):
+        axis.bar(x + (c - 1) * 0.27, [values[n][c] for n in names], 0.27, color=colour,
+                 label="RGB"[c])  # fmt: skip
+    axis.set_xticks(x, names, rotation=30, ha="right", fontsize=8)
+    axis.set_ylabel(ylabel)
+    axis.legend(fontsize=8)
     figure.tight_layout()
     save_figure(figure, path)

@@ -24,9 +24,13 @@ Contents
     Residual chromatic aberration in strips inside ColorChecker patch edges (§4.4.3).
 :data:`BASELINES`, :func:`baseline`
     Comparison methods (§4.6): bilinear, Malvar, Menon demosaicing, then optional warping.
+:func:`baseline_images`, :func:`evaluate`, :class:`Evaluation`
+    Every baseline of one raw image, and a scoreboard of named estimates (residual
+    aberration, colour and spectral errors against a truth) (``labkit evaluate``).
 """
 
 from reconstruction.baselines import BASELINES, baseline
+from reconstruction.evaluation import Evaluation, Score, baseline_images, evaluate
 from reconstruction.image_formation import ImageFormation, LatentSpace, build_formation
 from reconstruction.metrics import (
     ColourErrors,
@@ -54,6 +58,7 @@ __all__ = [
     "CRITERIA",
     "PRIORS",
     "ColourErrors",
+    "Evaluation",
     "ImageFormation",
     "LatentSpace",
     "PatchOptions",
@@ -62,12 +67,15 @@ __all__ = [
     "Problem",
     "Reconstruction",
     "ResidualAberration",
+    "Score",
     "SolverOptions",
     "SpectralErrors",
     "WeightSelection",
     "baseline",
+    "baseline_images",
     "build_formation",
     "colour_errors",
+    "evaluate",
     "ideal_image",
     "patch_regions",
     "patch_weights",

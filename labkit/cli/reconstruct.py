@@ -445,6 +445,7 @@ def _write_outputs(args: argparse.Namespace, job: _Job, result: Any) -> dict[str
     import labkit
     from labkit.io import (
         SpectralImage,
+        spectral_preview,
         to_display,
         to_plain,
         write_png,
@@ -483,8 +484,6 @@ def _write_outputs(args: argparse.Namespace, job: _Job, result: Any) -> dict[str
     }
     paths: dict[str, Path] = {}
     if result.wavelengths_nm is not None:
-        from labkit.spectra.conversion import spectral_to_xyz, xyz_to_srgb
-
         centres = np.asarray(result.wavelengths_nm, dtype=np.float64)
         basis = {
             "kernel": result.latent.kernel,
@@ -501,11 +500,7 @@ def _write_outputs(args: argparse.Namespace, job: _Job, result: Any) -> dict[str
                 {**provenance, "basis": basis, "units": "raw units per nm"},
             ),
         )
-        xyz = spectral_to_xyz(result.spectral, centres)
-        white = float(np.percentile(xyz[..., 1], 99.5))
-        if not math.isfinite(white) or white <= 0:
-            white = 1.0
-        preview = (xyz_to_srgb(xyz / white) * 255 + 0.5).astype(np.uint8)
+        preview = spectral_preview(result.spectral, centres)
     else:
         preview = to_display(np.maximum(result.raw_colour, 0), max_side=None)
     paths["raw_colour"] = out / "raw_colour.exr"

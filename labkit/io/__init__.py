@@ -6,13 +6,21 @@ from labkit.io.exr import (
     SpectralImage,
     band_name,
     read_raw_exr,
+    read_rgb_exr,
     read_spectral_exr,
     write_raw_exr,
     write_rgb_exr,
     write_spectral_exr,
 )
 from labkit.io.plain import to_plain
-from labkit.io.preview import demosaic_bilinear, raw_preview, to_display, write_png
+from labkit.io.preview import (
+    demosaic_bilinear,
+    display_on_one_scale,
+    raw_preview,
+    spectral_preview,
+    to_display,
+    write_png,
+)
 from labkit.io.tiff import encode_raw_tiff, read_raw_tiff, write_raw_tiff
 
 __all__ = [
@@ -22,12 +30,15 @@ __all__ = [
     "atomic_write",
     "band_name",
     "demosaic_bilinear",
+    "display_on_one_scale",
     "encode_raw_tiff",
     "fsync_directory",
     "raw_preview",
     "read_raw_exr",
     "read_raw_tiff",
+    "read_rgb_exr",
     "read_spectral_exr",
+    "spectral_preview",
     "to_display",
     "to_plain",
     "write_png",

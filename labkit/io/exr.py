@@ -183,6 +183,14 @@ def write_rgb_exr(path: str | Path, rgb: np.ndarray, labkit: dict[str, Any] | No
     _write(path, header, channels)
 
 
+def read_rgb_exr(path: str | Path) -> np.ndarray:
+    """Read an RGB EXR (channels R, G, B) as (rows, cols, 3) float32."""
+    _, channels = _read(path)
+    if not {"R", "G", "B"} <= set(channels):
+        raise DataError(f"{path}: expected channels R, G, B (an RGB EXR), got {sorted(channels)}")
+    return np.stack([channels[c] for c in "RGB"], axis=-1)
+
+
 def read_spectral_exr(path: str | Path) -> SpectralImage:
     """Read a spectral EXR written by :func:`write_spectral_exr`."""
     header, channels = _read(path)

@@ -49,9 +49,17 @@ def raw_preview(
 
 
 def to_display(
-    linear_rgb: np.ndarray, *, max_side: int | None = 1024, percentile: float = 99.5
+    linear_rgb: np.ndarray,
+    *,
+    max_side: int | None = 1024,
+    percentile: float = 99.5,
+    white: float | None = None,
 ) -> np.ndarray:
-    """Linear (rows, cols, 3) → gamma-encoded uint8, scaled to the given percentile."""
+    """Linear (rows, cols, 3) → gamma-encoded uint8, scaled to the given percentile.
+
+    `white`, when given, is the linear value shown as white instead (to show several
+    images on one scale).
+    """
     image = np.asarray(linear_rgb, dtype=np.float32)
     if max_side and max(image.shape[:2]) > max_side:
         step = int(np.ceil(max(image.shape[:2]) / max_side))
@@ -62,7 +70,7 @@ def to_display(
             .reshape(rows // step, step, cols // step, step, -1)
             .mean(axis=(1, 3))
         )
-    scale = float(np.percentile(image, percentile))
+    scale = float(np.percentile(image, percentile)) if white is None else float(white)
     if not np.isfinite(scale) or scale <= 0:
         scale = 1.0
     normalised = np.clip(image / scale, 0.0, 1.0)
@@ -70,6 +78,40 @@ def to_display(
         normalised <= 0.0031308, 12.92 * normalised, 1.055 * normalised ** (1 / 2.4) - 0.055
     )
     return (encoded * 255 + 0.5).astype(np.uint8)
+
+
+def display_on_one_scale(
+    images: dict[str, np.ndarray], *, reference: str | None = None, percentile: float = 99.5
+) -> dict[str, np.ndarray]:
+    """Display images (uint8) of linear colour images, all on the scale of one of them.
+
+    Grey-world white balance and the `percentile` white point come from `reference`
+    (default: the first image), so differences between the images stay visible.
+    """
+    first = images[reference if reference is not None else next(iter(images))]
+    means = np.maximum(first, 0).reshape(-1, 3).mean(axis=0)
+    gains = np.where(means > 0, means.mean() / np.maximum(means, 1e-30), 1.0)
+    white = float(np.percentile(np.maximum(first, 0) * gains, percentile))
+    return {
+        name: to_display(np.maximum(image, 0) * gains, max_side=None, white=white)
+        for name, image in images.items()
+    }
+
+
+def spectral_preview(
+    spectral: np.ndarray, wavelengths_nm: np.ndarray, *, percentile: float = 99.5
+) -> np.ndarray:
+    """sRGB uint8 (rows, cols, 3) of a spectral image (CIE 1931 2° → sRGB, colour-science).
+
+    The `percentile` of luminance Y is shown as white.
+    """
+    from labkit.spectra.conversion import spectral_to_xyz, xyz_to_srgb
+
+    xyz = spectral_to_xyz(spectral, np.asarray(wavelengths_nm, dtype=np.float64))
+    white = float(np.percentile(xyz[..., 1], percentile))
+    if not np.isfinite(white) or white <= 0:
+        white = 1.0
+    return (xyz_to_srgb(xyz / white) * 255 + 0.5).astype(np.uint8)
 
 
 def write_png(path: str | Path, image: np.ndarray) -> None:

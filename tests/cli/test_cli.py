@@ -110,27 +110,6 @@ def test_sim_render_bad_input(
     assert not out.exists(), "nothing is written on error"
 
 
-def test_quick_demo_report(tmp_path: Path, small_rig_file: Path) -> None:
-    assert main(["demo", "--out", str(tmp_path), "--rig", str(small_rig_file), "--quick"]) == 0
-    report = (tmp_path / "report.md").read_text()
-    # every scene under every illumination, each row linking an existing preview
-    rows = [line for line in report.splitlines() if line.startswith("| ") and ".png" in line]
-    assert len(rows) == 3 * 8
-    for row in rows:
-        preview = row.rsplit("(", 1)[1].rstrip(") |")
-        assert (tmp_path / preview).is_file(), preview
-    for figure in ("spectra.png", "dispersion.png"):
-        assert f"]({figure})" in report and (tmp_path / figure).stat().st_size > 10_000
-    darks = sorted((tmp_path / "frames").glob("dark_*.tiff"))
-    assert darks, "dark frames for the exposures used"
-    for dark in darks:
-        image, meta = read_raw_tiff(dark)
-        assert meta["illumination"] == "dark"
-        # black level 32 DN + gain 0.4 DN/e⁻ × dark current 5 e⁻/s × exposure
-        expected = 32 + 0.4 * 5.0 * meta["exposure_s"]
-        assert abs(np.mean(image) - expected) <= 0.5, (dark.name, np.mean(image), expected)
-
-
 def test_bench_report_files(tmp_path: Path) -> None:
     cases = [Measurement("render", 2.0, [1.9, 2.0, 2.1], 100.0, target_s=15.0, passed=True,
                          extra={"size": "64x96"})]  # fmt: skip

@@ -1,0 +1,193 @@
+"""``labkit evaluate RAW.exr --out DIR``: baselines and reconstructions scored side by side."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+DESCRIPTION = """\
+Score colour images of one raw image (thesis §4.4, §4.6). Runs the demosaicing baselines
+(bilinear, Malvar 2004, Menon 2007; with --colour-dispersion each also followed by warping
+Red and Blue onto Green), adds the images given with --image (e.g. the raw_colour.exr of
+`labkit reconstruct`), and measures:
+
+  - residual chromatic aberration (§4.4.3) in 12-px strips inside the patch edges of a
+    ColorChecker-like chart, given its geometry: --labels (a label image, 0 = background,
+    k = patch k) or --scene NAME of a simulated rig (--rig);
+  - colour errors against --truth-colour (an RGB EXR of the aberration-free image) and,
+    for a simulated scene, against the simulator's truth (--scene with --truth).
+
+Writes DIR/evaluation.json, DIR/evaluation.md and .html (a table and previews on one
+display scale) and DIR/<method>.png. Errors are fractions of the raw image's mean.
+"""
+
+
+def register(commands: argparse._SubParsersAction) -> None:
+    """Add ``labkit evaluate``."""
+    from reconstruction.baselines import BASELINES
+
+    parser = commands.add_parser(
+        "evaluate",
+        help="score baselines and reconstructions of one raw image (residual aberration, errors)",
+        description=DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("raw", type=Path, help="raw (HDR) mosaic EXR")
+    parser.add_argument("--out", type=Path, required=True, help="output folder")
+    parser.add_argument(
+        "--baselines",
+        default=",".join(BASELINES),
+        help=f"comma-separated demosaicers, or 'none' (default {','.join(BASELINES)})",
+    )
+    parser.add_argument(
+        "--colour-dispersion",
+        type=Path,
+        help="from_reference colour-channel model YAML: adds '<method> + warp' baselines",
+    )
+    parser.add_argument(
+        "--image",
+        action="append",
+        default=[],
+        metavar="NAME=RGB.exr",
+        help="another colour estimate in raw colour, e.g. ours=recon/raw_colour.exr (repeatable)",
+    )
+    geometry = parser.add_mutually_exclusive_group()
+    geometry.add_argument("--labels", type=Path, help="patch label image (PNG/TIFF/NPY)")
+    geometry.add_argument("--scene", help="simulated scene whose chart geometry to use")
+    parser.add_argument("--rig", type=Path, help="simulated rig YAML for --scene (default: sim)")
+    parser.add_argument("--truth-colour", type=Path, help="aberration-free RGB EXR to compare with")
+    parser.add_argument(
+        "--truth",
+        action="store_true",
+        help="with --scene: compare with the simulator's dispersion-free raw-colour truth",
+    )
+    parser.set_defaults(handler=_evaluate)
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    from labkit.errors import DataError
+    from labkit.io import display_on_one_scale, read_raw_exr, write_png, write_text_atomic
+    from labkit.report import Report, file_stem
+    from reconstruction import baseline_images, evaluate
+
+    raw = read_raw_exr(args.raw)
+    if raw.cfa is None:
+        raise DataError(f"{args.raw}: no 'cfa' header; not a raw mosaic written by labkit")
+    images_in = dict(_named_image(spec, raw.raw.shape) for spec in args.image)
+    methods = [] if args.baselines == "none" else [m.strip() for m in args.baselines.split(",")]
+    model = None
+    if args.colour_dispersion is not None:
+        from calibration.dispersion_model import load_dispersion_model
+
+        model = load_dispersion_model(args.colour_dispersion)
+    boxes = labels = truth = None
+    if args.labels is not None:
+        labels = _read_labels(args.labels, raw.raw.shape)
+    if args.scene is not None:
+        world = _world(args.rig, raw.raw.shape)
+        if args.truth:
+            from labkit.sim.truth import colour_truth
+
+            truth = colour_truth(world, args.scene)
+        if _is_chart(world, args.scene):
+            from labkit.sim import colorchecker_patch_boxes
+
+            boxes = colorchecker_patch_boxes(world.scene(args.scene))
+    elif args.truth:
+        raise DataError("--truth needs --scene (the simulator's truth of that scene)")
+    if args.truth_colour is not None:
+        truth = _read_rgb(args.truth_colour, raw.raw.shape)
+    if not methods and not images_in:
+        raise DataError("nothing to evaluate: give --baselines or at least one --image")
+    images, seconds = baseline_images(raw.raw, cfa=raw.cfa, methods=methods,
+                                      colour_dispersion=model)  # fmt: skip
+    images.update(images_in)
+    result = evaluate(raw.raw, images, cfa=raw.cfa, boxes=boxes, labels=labels,
+                      truth_colour=truth, seconds=seconds)  # fmt: skip
+    out: Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    report = Report(f"labkit evaluate — {args.raw.name}")
+    report.paragraph(
+        f"Raw image `{args.raw}` ({raw.raw.shape[1]}×{raw.raw.shape[0]}, {raw.cfa}). "
+        + " ".join(result.notes)
+    )
+    header, rows = result.table()
+    report.table(header, rows)
+    figures = []
+    for name, image in display_on_one_scale(images).items():
+        path = out / f"{file_stem(name)}.png"
+        write_png(path, image)
+        figures.append((path.name, name))
+    report.figures(figures, width_px=320)
+    plain = {"raw": str(args.raw), **result.as_dict()}
+    write_text_atomic(out / "evaluation.json", json.dumps(plain, indent=1) + "\n")
+    report.write(out, "evaluation")
+    for row in rows:
+        print("  ".join(f"{h}: {v}" for h, v in zip(header, row, strict=True)))
+    print(f"wrote {out / 'evaluation.json'}, evaluation.md, evaluation.html")
+    return 0
+
+
+def _named_image(spec: str, shape: tuple[int, int]):
+    from labkit.errors import DataError
+
+    name, sep, path = spec.partition("=")
+    if not sep or not name or not path:
+        raise DataError(f"--image {spec!r}: expected NAME=PATH.exr, e.g. ours=recon/raw_colour.exr")
+    return name, _read_rgb(Path(path), shape)
+
+
+def _read_rgb(path: Path, shape: tuple[int, int]):
+    from labkit.errors import DataError
+    from labkit.io import read_rgb_exr
+
+    rgb = read_rgb_exr(path)
+    if rgb.shape[:2] != tuple(shape):
+        raise DataError(
+            f"{path} is {rgb.shape[1]}×{rgb.shape[0]} px but the raw image is "
+            f"{shape[1]}×{shape[0]} px; give images of the same raw image"
+        )
+    return rgb
+
+
+def _read_labels(path: Path, shape: tuple[int, int]):
+    import numpy as np
+
+    from labkit.errors import DataError
+
+    if path.suffix.lower() == ".npy":
+        labels = np.load(path)
+    else:
+        from PIL import Image
+
+        try:
+            labels = np.asarray(Image.open(path))
+        except OSError as error:
+            raise DataError(f"--labels {path}: not a readable image ({error})") from None
+    if labels.ndim != 2 or labels.shape != tuple(shape):
+        raise DataError(
+            f"--labels {path}: expected a single-channel {shape[1]}×{shape[0]} label image, "
+            f"got shape {labels.shape}"
+        )
+    return labels.astype(np.int32)
+
+
+def _world(rig_path: Path | None, shape: tuple[int, int]):
+    from labkit.errors import ConfigError
+    from labkit.rig import default_rig_path, load_rig
+    from labkit.sim import SimulatedRig
+
+    rig = load_rig(rig_path or default_rig_path())
+    if rig.sim is None:
+        raise ConfigError(f"{rig_path}: --scene needs a simulated rig (a 'sim' section)")
+    return SimulatedRig(rig, shape=shape)
+
+
+def _is_chart(world, scene: str) -> bool:
+    from labkit.errors import DataError
+
+    scenes = world.rig.sim.scenes
+    if scene not in scenes:
+        raise DataError(f"--scene {scene!r} is not in the rig; its scenes: {sorted(scenes)}")
+    return scenes[scene].type == "colorchecker"
