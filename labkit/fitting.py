@@ -4,8 +4,9 @@ Used for the HDR exposure scaling factors (thesis §4.2.3, after Darrodi et al.)
 relative channel sensitivities (Algorithm 12): pairs ``(x_i, y_i)`` lie on a line
 ``y = s x`` through the origin, both coordinates noisy. The slope is the direction of the
 first principal component of the (uncentred) point cloud, i.e. total least squares
-through the origin. Both axes are divided by one common scale first (the geometry, and so
-the principal direction, is unchanged), and the second moments are summed in float64.
+through the origin. Both axes are divided by one common power of two first (the geometry,
+and so the principal direction, is unchanged; no overflow or underflow whatever the
+units), and the second moments are summed in float64.
 """
 
 from __future__ import annotations
@@ -61,9 +62,9 @@ def principal_slope(x: np.ndarray, y: np.ndarray, *, min_count: int = 2) -> Slop
         raise DataError(f"principal_slope: x has {x.size} values but y has {y.size}")
     if x.size < max(min_count, 2):
         raise DataError(f"principal_slope: {x.size} pairs, need at least {max(min_count, 2)}")
-    sxx, sxy, syy = _moments(x, y)
-    if not np.isfinite(sxx + sxy + syy):
+    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
         raise DataError("principal_slope: pairs contain NaN or Inf")
+    sxx, sxy, syy = _moments(x, y)
     if sxx == 0 or syy == 0:
         raise DataError("principal_slope: one of the two measurements is all zero")
     scale = (sxx + syy) / (2.0 * x.size)  # a common scale² for both axes
@@ -86,11 +87,17 @@ _CHUNK = 1 << 18
 
 
 def _moments(x: np.ndarray, y: np.ndarray) -> tuple[float, float, float]:
-    """(Σx², Σxy, Σy²) in float64, a chunk at a time (no full-size float64 copies)."""
+    """(Σx², Σxy, Σy²) / u² in float64, a chunk at a time (no full-size float64 copies).
+
+    u is a power of two near the largest |value| of x and y, so the squares neither
+    overflow nor underflow whatever the units (the slope does not depend on u).
+    """
+    peak = max(float(x.max()), -float(x.min()), float(y.max()), -float(y.min()))
+    inverse_unit = float(np.ldexp(1.0, -int(np.frexp(peak)[1]))) if peak > 0 else 1.0
     sxx = sxy = syy = 0.0
     for start in range(0, x.size, _CHUNK):
-        a = x[start : start + _CHUNK].astype(np.float64)
-        b = y[start : start + _CHUNK].astype(np.float64)
+        a = x[start : start + _CHUNK].astype(np.float64) * inverse_unit
+        b = y[start : start + _CHUNK].astype(np.float64) * inverse_unit
         sxx += float(a @ a)
         sxy += float(a @ b)
         syy += float(b @ b)

@@ -52,6 +52,8 @@ RELATIVE_FLOOR = 1e-3
 #: Pixels per block in spectral_errors and registration_scale (bounds the float64
 #: temporaries to a few × BLOCK_PIXELS × bands values, whatever the image size).
 BLOCK_PIXELS = 1 << 16
+#: Largest |value| (and, inverted, smallest peak) the metrics square without rescaling.
+SAFE_MAGNITUDE = 1e100
 #: Side of SSIM's Gaussian window (σ = 1.5 px, truncated at 3.5 σ), px.
 SSIM_WINDOW_PX = 11
 
@@ -204,6 +206,9 @@ def registration_scale(
         estimate is zero wherever the weight is positive.
     """
     truth, estimate = _pair(truth, estimate, "registration_scale", min_ndim=1)
+    unit = _unit(truth, estimate)  # S is unchanged by a common scale
+    if unit != 1.0:
+        truth, estimate = truth / unit, estimate / unit
     w = _weights(weights, truth.shape[:-1]).reshape(-1)
     bands = truth.shape[-1]
     t_all = truth.reshape(-1, bands)
@@ -300,6 +305,9 @@ def spectral_errors(
         excludes every value, or an image too small or too flat for SSIM.
     """
     truth, estimate = _pair(truth, estimate, "spectral_errors", min_ndim=3, max_ndim=3)
+    truth, estimate, unit = _rescaled(truth, estimate)
+    floor = None if floor is None else _check_floor(floor) / unit
+    data_range = None if data_range is None else float(data_range) / unit
     rows, cols, bands = truth.shape
     region = _mask(mask, (rows, cols), "spectral_errors")
     scale = _scale(truth, estimate, region, register, weights)
@@ -341,9 +349,9 @@ def spectral_errors(
         mrae_ok[block] = counts > 0
         gof_px[block], gof_ok[block] = _gof(t, e, thr)
     if valid_count == 0:
-        raise _all_excluded("MRAE", thr)
+        raise _all_excluded("MRAE", thr * unit)
     if not gof_ok.any():
-        raise _all_excluded("GOF", thr)
+        raise _all_excluded("GOF", thr * unit)
 
     ssim_bands = None
     if ssim:
@@ -356,19 +364,19 @@ def spectral_errors(
 
     return SpectralErrors(
         mrae=relative_sum / valid_count,
-        rmse_pixel=float(rmse_px.mean()),
-        rmse_global=float(np.sqrt(squares / (pixels * bands))),
+        rmse_pixel=float(rmse_px.mean()) * unit,
+        rmse_global=float(np.sqrt(squares / (pixels * bands))) * unit,
         gof=float(gof_px[gof_ok].mean()),
         ssim=None if ssim_bands is None else float(np.mean(ssim_bands)),
         ssim_bands=ssim_bands,
         n_pixels=pixels,
         n_bands=bands,
-        floor=thr,
+        floor=thr * unit,
         mrae_excluded=pixels * bands - valid_count,
         gof_excluded=int(pixels - gof_ok.sum()),
         scale=None if scale is None else tuple(float(s) for s in scale),
         mrae_map=_as_map(mrae_px, region, mrae_ok),
-        rmse_map=_as_map(rmse_px, region, np.ones(pixels, dtype=bool)),
+        rmse_map=_as_map(rmse_px * unit, region, np.ones(pixels, dtype=bool)),
         gof_map=_as_map(gof_px, region, gof_ok),
     )
 
@@ -427,6 +435,9 @@ def colour_errors(
             f"colour_errors needs (rows, cols, 3) images (R, G, B), got {truth.shape}; "
             "use spectral_errors for spectral images"
         )
+    truth, estimate, unit = _rescaled(truth, estimate)
+    floor = None if floor is None else _check_floor(floor) / unit
+    data_range = None if data_range is None else float(data_range) / unit
     region = _channel_mask(mask, truth.shape)
     scale = _scale(truth, estimate, region.any(axis=2), register, weights)
     if scale is not None:
@@ -445,7 +456,7 @@ def colour_errors(
         rmse.append(float(np.sqrt(np.mean(diff * diff))))
         valid = np.abs(t) > thr
         if not valid.any():
-            raise _all_excluded(f"the {name} channel's MRAE", thr)
+            raise _all_excluded(f"the {name} channel's MRAE", thr * unit)
         mrae.append(float(np.mean(np.abs(diff[valid]) / np.abs(t[valid]))))
         counts.append(int(inside.sum()))
         excluded.append(int(inside.sum() - valid.sum()))
@@ -454,10 +465,10 @@ def colour_errors(
             ssims.append(_ssim(truth[..., c], estimate[..., c], partial, L))
     return ColourErrors(
         mrae=tuple(mrae),
-        rmse=tuple(rmse),
+        rmse=tuple(r * unit for r in rmse),
         ssim=tuple(ssims) if ssim else None,
         n_pixels=tuple(counts),
-        floor=thr,
+        floor=thr * unit,
         mrae_excluded=tuple(excluded),
         scale=None if scale is None else tuple(float(s) for s in scale),
     )
@@ -488,6 +499,27 @@ def _pair(
                 "with a mask of valid pixels"
             )
     return t, e
+
+
+def _unit(*arrays: np.ndarray) -> float:
+    """A power of two near the arrays' largest |value|, or 1 when squares are safe.
+
+    Products of values beyond :data:`SAFE_MAGNITUDE` (or below its inverse) overflow or
+    underflow in float64; dividing by an exact power of two leaves every relative metric
+    unchanged and absolute ones exact after multiplying back.
+    """
+    peak = max(max(float(a.max()), -float(a.min())) for a in arrays)
+    if peak == 0 or 1 / SAFE_MAGNITUDE <= peak <= SAFE_MAGNITUDE:
+        return 1.0
+    return float(np.ldexp(1.0, int(np.frexp(peak)[1])))
+
+
+def _rescaled(truth: np.ndarray, estimate: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """(truth / u, estimate / u, u) with u from :func:`_unit` (no copies when u = 1)."""
+    unit = _unit(truth, estimate)
+    if unit == 1.0:
+        return truth, estimate, unit
+    return truth / unit, estimate / unit, unit
 
 
 def _floating(array: np.ndarray) -> np.ndarray:

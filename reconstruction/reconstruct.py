@@ -39,6 +39,10 @@ from reconstruction.weights import CRITERIA, select_weights
 MIN_PAD_PX = 8
 """Smallest default patch overlap, px."""
 
+MAX_RAW_MAGNITUDE = 1e30
+"""Largest |raw value| accepted (and smallest non-zero peak, as its inverse): the spectral
+and raw-colour outputs are float32 (largest finite 3.4e38, smallest normal 1.2e-38)."""
+
 REFERENCE_SMOOTHING = 1e-2
 """Weight w of (6.1)'s spectral-gradient penalty, relative to ‖C‖² (normalised units)."""
 
@@ -99,11 +103,19 @@ def parse_weights(
 
 
 def check_raw(raw: np.ndarray, *, where: str = "the raw image") -> np.ndarray:
-    """`raw` as float64 after checking it is an even-sized, finite 2-D mosaic (≥ 8×8 px).
+    """`raw` as float64 after checking it is a usable Bayer mosaic.
+
+    Usable: a 2-D array of real numbers, even-sized, at least 8×8 px, finite, and with a
+    largest |value| of 0 or within [1e-30, 1e30] (:data:`MAX_RAW_MAGNITUDE`).
 
     `where` names the image in messages (e.g. its file).
     """
     raw = np.asarray(raw)
+    if raw.dtype.kind not in "biuf":
+        raise DataError(
+            f"{where} must hold real numbers, got dtype {raw.dtype}; convert it to float "
+            "(complex or text values are not a raw image)"
+        )
     if raw.ndim != 2:
         raise DataError(f"{where} must be a 2-D Bayer mosaic, got shape {raw.shape}")
     rows, cols = raw.shape
@@ -120,6 +132,13 @@ def check_raw(raw: np.ndarray, *, where: str = "the raw image") -> np.ndarray:
         raise DataError(
             f"{where} has {int(bad.sum())} NaN/Inf pixel(s), first at (row, col) = "
             f"({first[0]}, {first[1]}); repair or mask them before reconstruction"
+        )
+    peak = float(np.max(np.abs(raw)))
+    if peak > MAX_RAW_MAGNITUDE or 0 < peak < 1 / MAX_RAW_MAGNITUDE:
+        raise DataError(
+            f"{where} has values up to {peak:.3g} in magnitude; the float32 outputs hold "
+            f"{1 / MAX_RAW_MAGNITUDE:g} … {MAX_RAW_MAGNITUDE:g}: rescale the raw image "
+            "(e.g. to counts or a fraction of saturation) before reconstruction"
         )
     return raw.astype(np.float64)
 

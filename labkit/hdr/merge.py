@@ -42,6 +42,10 @@ from labkit.hdr.weights import DISK_1, blend_weight
 
 METHODS = ("thesis", "noise")
 
+MAX_EXPOSURE_SPAN = 1e15
+"""Largest ratio of the longest to the shortest exposure time: signals are chained to the
+longest exposure's units in float32 (largest finite 3.4e38; saturation ≤ 2³² DN)."""
+
 
 @dataclass(frozen=True)
 class SensorLevels:
@@ -154,8 +158,12 @@ class HDRResult:
         Consecutive-exposure fits, longest pair first.
     noise : NoiseModel or None
     saturated_pixels : int
-        Pixels with no usable sample (copied from the shortest exposure).
+        Pixels clipped (or next to a clipped pixel) at every exposure, the shortest
+        included; their values (copied from the shortest exposure) are lower bounds.
     warnings : list of str
+    dark_pixels : int
+        Pixels with no usable sample at any exposure yet unclipped at the shortest: no
+        signal above the dark level (thesis weights); copied from the shortest exposure.
     """
 
     raw: np.ndarray
@@ -168,6 +176,7 @@ class HDRResult:
     saturated_pixels: int
     levels: SensorLevels
     warnings: list[str] = field(default_factory=list)
+    dark_pixels: int = 0
 
     def provenance(self) -> dict[str, Any]:
         """JSON-friendly facts for the EXR header and the run report."""
@@ -203,6 +212,7 @@ class HDRResult:
             ],
             "noise": None if self.noise is None else self.noise.as_dict(),
             "saturated_pixels": self.saturated_pixels,
+            "dark_pixels": self.dark_pixels,
             "warnings": self.warnings,
         }
 
@@ -261,11 +271,18 @@ def merge_exposures(
         raise DataError(f"exposure times repeat: {sorted(times)}; merge replicates first")
     if any(not np.isfinite(t) or t <= 0 for t in times):
         raise DataError(f"exposure times must be positive seconds, got {times}")
+    if not max(times) / min(times) <= MAX_EXPOSURE_SPAN:
+        raise DataError(
+            f"exposure times span {min(times):g} s … {max(times):g} s, a ratio above "
+            f"{MAX_EXPOSURE_SPAN:g}: the float32 merge cannot hold it; check the exposure "
+            "times (seconds) or merge the bracket in parts"
+        )
     layout = check_layout(cfa)
     get_dark = darks.__getitem__ if isinstance(darks, Mapping) else darks
     noise_aware = method == "noise"
     saturation_range = levels.saturation_range
     clip_level = levels.black_level_dn + high * saturation_range
+    weight_unit = np.float32(max(times) / min(times))  # noise weights: any common factor
 
     order = sorted(exposures, key=lambda e: e.exposure_s, reverse=True)
     shape: tuple[int, int] | None = None
@@ -366,7 +383,9 @@ def merge_exposures(
             variance = np.float32(gain) * shot + const
             weight = np.zeros(shape, np.float32)
             positive = usable & (variance > 0)
-            weight[positive] = 1.0 / variance[positive]
+            # ∝ 1 / variance, times a constant (the exposure span) that keeps the squared
+            # weights of the shortest exposure (variance ∝ chain²) from underflowing float32
+            weight[positive] = weight_unit / variance[positive]
             squared = weight * weight
             shot_part += squared * shot
             constant_part += squared * const
@@ -390,7 +409,11 @@ def merge_exposures(
     merged[no_weight] = signal[no_weight] * np.float32(reference_chain)  # the shortest exposure
     to_output = np.float32(1.0 / (reference_chain * saturation_range))
     merged *= to_output
-    saturated = int(np.count_nonzero(no_weight))
+    # no weight anywhere: clipped (or next to a clipped pixel) at the shortest exposure, or
+    # else never above the dark level (thesis weights are 0 at p ≤ 0)
+    clipped = ~previous[1]
+    saturated = int(np.count_nonzero(no_weight & clipped))
+    unlit = int(np.count_nonzero(no_weight & ~clipped))
 
     noise_model = None
     variance_out = None
@@ -407,6 +430,12 @@ def merge_exposures(
         warnings.append(
             f"{saturated} pixels are saturated (or next to saturation) even at the shortest "
             f"exposure {reference:g} s; their values are lower bounds"
+        )
+    if unlit:
+        warnings.append(
+            f"{unlit} pixels have no usable sample at any exposure and are not clipped at "
+            f"the shortest ({reference:g} s): no signal above the dark level; their values "
+            "come from the shortest exposure"
         )
     summaries = [
         ExposureSummary(
@@ -437,6 +466,7 @@ def merge_exposures(
         noise=noise_model,
         saturated_pixels=saturated,
         levels=levels,
+        dark_pixels=unlit,
         warnings=warnings,
     )
 

@@ -209,6 +209,14 @@ class NoiseEstimator:
     def model(self, exposures_s: list[float]) -> NoiseModel:
         """The fitted model for the given exposures."""
         gain = self.gain()
+        if gain is None and self._sums:
+            raise DataError(
+                f"cannot estimate the sensor gain from {self.pixels} pixel samples between "
+                f"{self.low:.0%} and {self.high:.0%} of saturation: within each exposure "
+                "their signals barely vary (a flat scene), so the replicate variances do not "
+                "separate shot from read noise; use a scene with a range of intensities, or "
+                "the thesis method"
+            )
         if gain is None:
             raise DataError(
                 "cannot estimate the sensor gain: no exposure has ≥ 2 replicates with pixels "

@@ -30,6 +30,10 @@ from reconstruction.prior_terms import PriorTerm
 
 _QUADS = ((0, 0), (0, 1), (1, 0), (1, 1))  # s = (s_y, s_x), index 2 s_y + s_x
 
+SINGULAR_RESIDUAL = 1e-2
+"""Largest relative residual ‖K K⁻¹ v − v‖ / ‖v‖ of the inverse on a random vector v before
+the matrix is declared singular (well-posed systems: ≲ 1e-7 even with the 1e-9 ridge)."""
+
 
 def mask_coefficients(cfa: str) -> np.ndarray:
     """Fourier coefficients a[c, s] (3, 4) of the channel masks of a Bayer layout."""
@@ -136,7 +140,23 @@ class FourierSolver:
         for s in range(4):
             matrix[:, s, :, s, :] += self._prior[:, s] + identity * np.eye(n)
         self._matrix = matrix.reshape(nq, 4 * n, 4 * n)
-        self._inverse = np.linalg.inv(self._matrix)
+        try:
+            self._inverse = np.linalg.inv(self._matrix)
+        except np.linalg.LinAlgError:
+            self._inverse = None
+        # a (numerically) singular block inverts to garbage without an error: check the
+        # inverse on one random vector per block (O(n²) per block, the inversion is O(n³))
+        probe = np.random.default_rng(0).standard_normal((1, 4 * n, 1))
+        if self._inverse is not None:
+            residual = self._matrix @ (self._inverse @ probe) - probe
+            worst = float(np.max(np.linalg.norm(residual, axis=1))) / float(np.linalg.norm(probe))
+        if self._inverse is None or not worst <= SINGULAR_RESIDUAL:
+            raise DataError(
+                "the quadratic step's matrix is singular: with identity coefficient "
+                f"{identity:g}, the data and prior terms leave some frequency components "
+                "undetermined (a Bayer mosaic observes 4 of the 4n per frequency quadruple); "
+                "give identity > 0 (e.g. a ridge of 1e-9 × the data term's scale)"
+            )
         self.identity = identity
 
     def _apply_quadruples(self, x: np.ndarray, inverse: bool, refine: bool = True) -> np.ndarray:
