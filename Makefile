@@ -23,7 +23,7 @@ test: venv
 	$(VENV)/bin/pytest -m "not slow" $(PYTEST_ARGS)
 
 # `bench all --full`: every stage, the full-size reconstruction and the whole 256²…2048²
-# scaling sweep (about 25 minutes on 2 cores). The slow tests run even when a benchmark
+# scaling sweep (about 20 minutes on 2 quiet cores). The slow tests run even when a benchmark
 # misses its target; make then fails.
 bench: venv
 	@status=0; \

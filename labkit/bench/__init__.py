@@ -2,12 +2,22 @@
 
 from labkit.bench.calibrate import bench_calibrate
 from labkit.bench.capture import bench_capture
-from labkit.bench.harness import Measurement, machine_info, measure, write_report
+from labkit.bench.harness import (
+    Measurement,
+    Plot,
+    Table,
+    fit_exponent,
+    machine_info,
+    measure,
+    render_markdown,
+    write_report,
+)
 from labkit.bench.hdr import bench_hdr
 from labkit.bench.reconstruct import bench_reconstruct
 from labkit.bench.sim import bench_sim
 
-#: Stage name → benchmark function (rig path, repeats) → (cases, notes).
+#: Stage name → benchmark function (rig path, repeats[, out][, full]) → (cases, notes); the
+#: notes (sentences, :class:`Plot`, :class:`Table`) go under the stage's heading.
 BENCHMARKS = {
     "sim": bench_sim,
     "capture": bench_capture,
@@ -19,12 +29,16 @@ BENCHMARKS = {
 __all__ = [
     "BENCHMARKS",
     "Measurement",
+    "Plot",
+    "Table",
     "bench_calibrate",
     "bench_capture",
     "bench_hdr",
     "bench_reconstruct",
     "bench_sim",
+    "fit_exponent",
     "machine_info",
     "measure",
+    "render_markdown",
     "write_report",
 ]

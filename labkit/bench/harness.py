@@ -83,9 +83,14 @@ def peak_rss_mib() -> float:
     return max(own, children) / 1024
 
 
+def accepts(function: Callable[..., Any], name: str) -> bool:
+    """Whether a benchmark function takes the keyword `name` (``out``, ``full``)."""
+    return name in inspect.signature(function).parameters
+
+
 def accepts_out(function: Callable[..., Any]) -> bool:
     """Whether a benchmark function takes the output folder (to write plots there)."""
-    return "out" in inspect.signature(function).parameters
+    return accepts(function, "out")
 
 
 def machine_info() -> dict[str, Any]:
@@ -110,17 +115,155 @@ def machine_info() -> dict[str, Any]:
     }
 
 
-def write_report(out: str | Path, stages: dict[str, list[Measurement]], notes: list[str]) -> Path:
-    """Write ``bench.json`` and ``bench.md`` into `out`; return the Markdown path."""
+@dataclass
+class Plot:
+    """A figure written next to ``bench.md`` and embedded under its stage's heading.
+
+    Attributes
+    ----------
+    title : str
+        Alt text and caption.
+    file : str
+        PNG file name, relative to the report's folder.
+    """
+
+    title: str
+    file: str
+
+
+@dataclass
+class Table:
+    """A Markdown table under a stage's heading (cells already formatted).
+
+    Attributes
+    ----------
+    title : str
+        One line above the table.
+    columns : list of str
+        Column headers.
+    rows : list of list of str
+        Cells, one list per row.
+    """
+
+    title: str
+    columns: list[str]
+    rows: list[list[str]]
+
+
+def repeat_timed(
+    run: Callable[[], Any], *, repeats: int, short_s: float, trace: bool = False
+) -> tuple[Any, list[float], float]:
+    """Run `run` once, and `repeats` − 1 more times if that took less than `short_s` seconds.
+
+    Parameters
+    ----------
+    run : callable
+        The timed work; its first return value is kept.
+    repeats : int
+        Runs of a short case (median of them is reported).
+    short_s : float
+        A case whose first run takes this long or longer (s) runs once.
+    trace : bool
+        Trace the first run's memory (numpy and Python allocations) with tracemalloc.
+
+    Returns
+    -------
+    first : Any
+        `run`'s value from the first run.
+    times : list of float
+        Wall time of every run, s.
+    peak_mib : float
+        Peak traced memory of the first run, MiB (0 without `trace`).
+    """
+    if trace:
+        tracemalloc.start()
+    start = time.perf_counter()
+    try:
+        first = run()
+        times = [time.perf_counter() - start]
+        peak = tracemalloc.get_traced_memory()[1] / 2**20 if trace else 0.0
+    finally:
+        if trace:
+            tracemalloc.stop()
+    if times[0] < short_s:
+        for _ in range(max(1, repeats) - 1):
+            start = time.perf_counter()
+            run()
+            times.append(time.perf_counter() - start)
+    return first, times, peak
+
+
+def write_report(
+    out: str | Path,
+    stages: dict[str, list[Measurement]],
+    notes: list[str],
+    *,
+    stage_notes: dict[str, list[str | Plot | Table]] | None = None,
+) -> Path:
+    """Write ``bench.json`` and ``bench.md`` into `out`; return the Markdown path.
+
+    Parameters
+    ----------
+    out : str or Path
+        Report folder (created); plots named by `stage_notes` should already be there.
+    stages : dict
+        Stage name → its cases.
+    notes : list of str
+        Notes about the whole run (a list at the end of the report).
+    stage_notes : dict, optional
+        Stage name → sentences, :class:`Plot` and :class:`Table` shown under that stage's
+        heading after its cases.
+
+    Returns
+    -------
+    Path
+        ``out/bench.md``; the Markdown is :func:`render_markdown` of the JSON.
+    """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    machine = machine_info()
+    stage_notes = stage_notes or {}
     payload = {
-        "machine": machine,
+        "machine": machine_info(),
         "stages": {stage: [asdict(m) for m in cases] for stage, cases in stages.items()},
-        "notes": notes,
+        "notes": list(notes),
+        "stage_notes": {
+            stage: [_note_json(note) for note in items] for stage, items in stage_notes.items()
+        },
+        "plots": {
+            stage: [note.file for note in items if isinstance(note, Plot)]
+            for stage, items in stage_notes.items()
+        },
     }
     write_text_atomic(out / "bench.json", json.dumps(payload, indent=2) + "\n")
+    write_text_atomic(out / "bench.md", render_markdown(payload))
+    return out / "bench.md"
+
+
+def _note_json(note: str | Plot | Table) -> str | dict[str, Any]:
+    if isinstance(note, Plot):
+        return {"kind": "plot", **asdict(note)}
+    if isinstance(note, Table):
+        return {"kind": "table", **asdict(note)}
+    return str(note)
+
+
+def render_markdown(payload: dict[str, Any]) -> str:
+    """The Markdown report of a ``bench.json`` payload (what :func:`write_report` writes).
+
+    Parameters
+    ----------
+    payload : dict
+        ``machine``, ``stages`` (stage → list of :class:`Measurement` fields), ``notes``
+        and optionally ``stage_notes`` (stage → sentences or ``{"kind": "plot" | "table",
+        …}``).
+
+    Returns
+    -------
+    str
+        The report: a table of cases per stage, that stage's notes, plots (relative image
+        links) and tables under its heading, then the general notes.
+    """
+    machine = payload["machine"]
     lines = [
         "# labkit benchmark",
         "",
@@ -128,7 +271,8 @@ def write_report(out: str | Path, stages: dict[str, list[Measurement]], notes: l
         f"numpy {machine['numpy']}, labkit {machine['labkit']}; {machine['date']}.",
         "",
     ]
-    for stage, cases in stages.items():
+    stage_notes = payload.get("stage_notes", {})
+    for stage, cases in payload["stages"].items():
         lines += [
             f"## {stage}",
             "",
@@ -137,18 +281,72 @@ def write_report(out: str | Path, stages: dict[str, list[Measurement]], notes: l
             "|---|---:|---:|---:|---:|---|---|",
         ]
         for m in cases:
-            verdict = "—" if m.passed is None else ("pass" if m.passed else "**FAIL**")
-            target = "—" if m.target_s is None else f"{m.target_s:g}"
-            details = ", ".join(f"{k}={_fmt(v)}" for k, v in m.extra.items())
+            passed = m.get("passed")
+            verdict = "—" if passed is None else ("pass" if passed else "**FAIL**")
+            target = "—" if m.get("target_s") is None else f"{m['target_s']:g}"
+            details = ", ".join(f"{k}={_fmt(v)}" for k, v in m.get("extra", {}).items())
             lines.append(
-                f"| {m.name} | {m.seconds:.3f} | {len(m.times)} | {m.peak_mib:.0f} | {target} "
-                f"| {verdict} | {details} |"
+                f"| {m['name']} | {m['seconds']:.3f} | {len(m['times'])} | {m['peak_mib']:.0f} "
+                f"| {target} | {verdict} | {details} |"
             )
         lines.append("")
-    if notes:
-        lines += ["## Notes", "", *[f"- {note}" for note in notes], ""]
-    write_text_atomic(out / "bench.md", "\n".join(lines))
-    return out / "bench.md"
+        lines += _render_notes(stage_notes.get(stage, []))
+    if payload.get("notes"):
+        lines += ["## Notes", "", *[f"- {note}" for note in payload["notes"]], ""]
+    return "\n".join(lines)
+
+
+def _render_notes(notes: list[str | dict[str, Any]]) -> list[str]:
+    """Sentences as a bullet list, plots as image paragraphs, tables as Markdown tables."""
+    lines: list[str] = []
+    bullets = False
+    for note in notes:
+        if isinstance(note, str):
+            lines.append(f"- {note}")
+            bullets = True
+            continue
+        if bullets:
+            lines.append("")
+            bullets = False
+        if note["kind"] == "plot":
+            lines += [f"![{note['title']}]({note['file']})", ""]
+        else:
+            lines += [
+                note["title"],
+                "",
+                "| " + " | ".join(note["columns"]) + " |",
+                "|" + "---|" * len(note["columns"]),
+                *["| " + " | ".join(row) + " |" for row in note["rows"]],
+                "",
+            ]
+    if bullets:
+        lines.append("")
+    return lines
+
+
+def fit_exponent(sizes: Any, seconds: Any) -> float:
+    """Exponent p of ``seconds ∝ sizes**p``, least squares on log(seconds) against log(sizes).
+
+    Parameters
+    ----------
+    sizes : array_like
+        Problem sizes (e.g. pixels), > 0, at least two distinct values.
+    seconds : array_like
+        Times, s, > 0, one per size.
+
+    Returns
+    -------
+    float
+        The fitted slope p in log–log space.
+    """
+    import numpy as np
+
+    x = np.log(np.asarray(sizes, dtype=np.float64))
+    y = np.log(np.asarray(seconds, dtype=np.float64))
+    if x.shape != y.shape or x.ndim != 1 or np.ptp(x) == 0:
+        raise ValueError("fit_exponent needs as many times as sizes and ≥ 2 distinct sizes")
+    dx = x - x.mean()
+    return float(dx @ (y - y.mean()) / (dx @ dx))
 
 
 def _fmt(value: Any) -> str:

@@ -5,7 +5,8 @@ replicates and matching darks (80 frames) merges in ≤ 10 s on 2 cores with a p
 resident memory ≤ 1 GiB. Each merge runs in a fresh process so its peak resident set
 (``VmHWM``: numpy, the interpreter and the frame buffers) is measured honestly.
 The merged images are compared with the simulator's noise-free signal and with the
-Cramér–Rao bound of the captured data (Poisson–Gaussian, darks included).
+Cramér–Rao bound of the captured data (Poisson–Gaussian, darks included), and plotted
+as merge time against error (thesis vs noise-aware weights).
 """
 
 from __future__ import annotations
@@ -23,7 +24,8 @@ from typing import Any
 
 import numpy as np
 
-from labkit.bench.harness import Measurement
+from labkit.bench.harness import Measurement, Plot
+from labkit.bench.plots import plot_time_vs_error
 from labkit.protocol import Engine
 from labkit.protocol.hardware import open_hardware
 from labkit.rig import Rig, load_rig
@@ -34,6 +36,7 @@ TARGET_RSS_MIB = 1024.0
 EXPOSURES_S = [0.0005 * 2**k for k in range(8)]  # 0.5 … 64 ms
 REPLICATES = 5
 SCENE = "colorchecker"
+TIME_ERROR_PNG = "hdr_time_vs_error.png"
 
 _CHILD = """
 import json, resource, sys, time
@@ -64,8 +67,25 @@ def hdr_bench_rig(rig: Rig) -> Rig:
     return rig.model_copy(update={"plan": plan})
 
 
-def bench_hdr(rig_path: str | Path, *, repeats: int = 2) -> tuple[list[Measurement], list[str]]:
-    """Capture the bench session (untimed), then merge it with each method in a subprocess."""
+def bench_hdr(
+    rig_path: str | Path, *, repeats: int = 2, out: Path | None = None
+) -> tuple[list[Measurement], list[str | Plot]]:
+    """Capture the bench session (untimed), then merge it with each method in a subprocess.
+
+    Parameters
+    ----------
+    rig_path : str or Path
+        Rig YAML of the simulated rig.
+    repeats : int
+        Merges per method (median time reported).
+    out : Path, optional
+        Report folder: the time-against-error plot is written there.
+
+    Returns
+    -------
+    cases : list of Measurement
+    notes : list of str and Plot
+    """
     from labkit.io import read_raw_exr
     from labkit.sim import SimulatedRig
     from labkit.sim.hdr_truth import effective_exposures, merge_truth
@@ -73,7 +93,7 @@ def bench_hdr(rig_path: str | Path, *, repeats: int = 2) -> tuple[list[Measureme
     rig = hdr_bench_rig(load_rig(rig_path))
     work = Path(tempfile.mkdtemp(prefix="labkit-bench-hdr-", dir=os.environ.get("TMPDIR")))
     cases: list[Measurement] = []
-    notes: list[str] = []
+    notes: list[str | Plot] = []
     try:
         folder = work / "session"
         session = Session.create(folder, rig)
@@ -100,12 +120,12 @@ def bench_hdr(rig_path: str | Path, *, repeats: int = 2) -> tuple[list[Measureme
         region = truth.region
         crb = truth.relative_rms_bound()
         for method in ("thesis", "noise"):
-            out = work / method
-            runs = [_child(folder, out, method) for _ in range(max(repeats, 1))]
+            merged = work / method
+            runs = [_child(folder, merged, method) for _ in range(max(repeats, 1))]
             times = [r["seconds"] for r in runs]
             rss = max(r["max_rss_mib"] for r in runs)
             seconds = statistics.median(times)
-            image = read_raw_exr(out / SCENE / "unfiltered.exr")
+            image = read_raw_exr(merged / SCENE / "unfiltered.exr")
             relative = image.raw[region] / truth.signal[region] - 1
             rms = float(np.sqrt(np.mean(relative**2)))
             factors = image.labkit["exposures"]
@@ -117,6 +137,7 @@ def bench_hdr(rig_path: str | Path, *, repeats: int = 2) -> tuple[list[Measureme
                 TARGET_S,
                 seconds <= TARGET_S and rss <= TARGET_RSS_MIB,
                 {
+                    "method": method,
                     "peak_rss_mib": rss,
                     "target_rss_mib": TARGET_RSS_MIB,
                     "relative_rms_error": rms,
@@ -138,7 +159,26 @@ def bench_hdr(rig_path: str | Path, *, repeats: int = 2) -> tuple[list[Measureme
         )
     finally:
         shutil.rmtree(work, ignore_errors=True)
+    if out is not None:
+        notes.append(time_error_plot(cases, Path(out)))
     return cases, notes
+
+
+def time_error_plot(cases: list[Measurement], out: Path) -> Plot:
+    """Merge time against relative RMS error, thesis vs noise-aware weights, with the bound."""
+    plot_time_vs_error(
+        {
+            f"{case.extra['method']} weights": [
+                (case.seconds, case.extra["relative_rms_error"], "")
+            ]
+            for case in cases
+        },
+        out / TIME_ERROR_PNG,
+        title="labkit hdr: merge time against error (full-size bracket)",
+        error_label="relative RMS error vs noise-free signal",
+        reference=("Cramér–Rao bound", cases[0].extra["cramer_rao_relative_rms"]),
+    )
+    return Plot("HDR merge: time against error, thesis vs noise-aware weights", TIME_ERROR_PNG)
 
 
 def _child(session: Path, out: Path, method: str) -> dict[str, Any]:

@@ -11,11 +11,16 @@ centres (the light averaged over each band's width, since the lamp has mercury l
 no band-limited model can hold) in the reference geometry, with vignetting; per-band
 registration (4.9) removes the unknown exposure scale. Colour errors compare the raw colour
 image with the dispersion-free render.
+
+Besides the target case: solver knobs (prior, band count, tolerance, patch size, with and
+without Φ) on one small textured image, plotted as time against error; an 80 %-flat scene
+with and without adaptive skipping; and the target case's settings on textured images of
+256², 512² (and, with ``full``, 1024² and 2048²) pixels, each in a fresh process, with the
+exponent p of time ∝ pixels^p fitted in log–log (issue 7: close to 1, held to ≤ 1.2).
 """
 
 from __future__ import annotations
 
-import io
 import os
 import time
 from pathlib import Path
@@ -23,7 +28,8 @@ from typing import Any
 
 import numpy as np
 
-from labkit.bench.harness import Measurement, peak_rss_mib
+from labkit.bench.harness import Measurement, Plot, Table, fit_exponent, peak_rss_mib
+from labkit.bench.plots import plot_scaling, plot_time_vs_error
 from labkit.rig import load_rig
 
 TARGET_S = 10.0
@@ -34,6 +40,16 @@ SHAPE = (344, 408)
 VARIANT_SHAPE = (172, 204)
 NOISE = 0.002
 """Gaussian noise, fraction of the brightest raw value."""
+SCALING_SIZES = (256, 512, 1024, 2048)
+"""Sides of the square images of the scaling sweep, px (``full`` runs)."""
+ROUTINE_SCALING_SIZES = (256, 512)
+"""The sweep's sides without ``full``, px."""
+SCALING_EXPONENT_MAX = 1.2
+"""Largest fitted exponent p of time ∝ pixels^p that passes."""
+SHORT_S = 30.0
+"""A scaling size whose first run is shorter than this (s) is repeated (median)."""
+TIME_ERROR_PNG = "reconstruct_time_vs_error.png"
+SCALING_PNG = "reconstruct_scaling.png"
 
 
 class LensField:
@@ -156,23 +172,66 @@ def _run(case: dict[str, Any], **options) -> tuple[Any, float]:
     return result, time.perf_counter() - start
 
 
-def _isolated(case: dict[str, Any], options: dict[str, Any]) -> tuple[Any, float, float]:
-    """:func:`_run` in this (child) process, plus this process' peak RSS, MiB."""
+def _peak_rss_self_mib() -> float:
+    """This process' own peak resident set, MiB.
+
+    ``VmHWM``: ``ru_maxrss`` would include the parent's peak, which the kernel carries over
+    into a child that was (v)forked and then exec'd (``spawn``).
+    """
     import resource
 
-    result, seconds = _run(case, **options)
-    return result, seconds, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    try:
+        with open("/proc/self/status") as status:
+            return next(int(ln.split()[1]) for ln in status if ln.startswith("VmHWM")) / 1024
+    except (OSError, StopIteration):
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def _run_isolated(case: dict[str, Any], **options) -> tuple[Any, float, float]:
-    """:func:`_run` in a fresh process, so its peak memory leaves out the simulation's."""
+def _isolated(
+    case: dict[str, Any], options: dict[str, Any], repeats: int, short_s: float
+) -> tuple[Any, list[float], dict[str, list[float]], float]:
+    """:func:`_run` in this (child) process, repeated if short; see :func:`_run_isolated`."""
+    from labkit.bench.harness import repeat_timed
+
+    seconds: list[float] = []
+    phases: dict[str, list[float]] = {"weight_s": [], "solve_s": []}
+
+    def once() -> Any:
+        result, elapsed = _run(case, **options)
+        seconds.append(elapsed)
+        phases["weight_s"].append(float(result.log["weights"]["seconds"]))
+        phases["solve_s"].append(float(result.log["solve_seconds"]))
+        return result
+
+    result, _, _ = repeat_timed(once, repeats=repeats, short_s=short_s)
+    return result, seconds, phases, _peak_rss_self_mib()
+
+
+def _run_isolated(
+    case: dict[str, Any], *, repeats: int = 1, short_s: float = 0.0, **options
+) -> tuple[Any, list[float], dict[str, list[float]], float]:
+    """:func:`_run` in a fresh process, so its peak memory leaves out the simulation's.
+
+    Returns
+    -------
+    result : Reconstruction
+        The first run's.
+    times : list of float
+        Every run's total time, s: `repeats` runs if the first took less than `short_s`
+        seconds, else one.
+    phases : dict
+        ``weight_s`` and ``solve_s``: every run's time in weight selection and in the
+        patch solves, s.
+    peak : float
+        The process' peak resident set, MiB.
+    """
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
     inputs = {key: case[key] for key in ("raw", "cfa", "response")}  # the truth won't pickle
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(max_workers=1, mp_context=context) as pool:
-        return pool.submit(_isolated, inputs, options).result()
+        return pool.submit(_isolated, inputs, options, repeats, short_s).result()
 
 
 def _bands(case: dict[str, Any], count: int) -> np.ndarray:
@@ -209,10 +268,35 @@ def _measurement(name, seconds, times, target, case, result, extra, peak=None) -
     )
 
 
+def full_run(full: bool | None = None) -> bool:
+    """Whether the slow cases run: `full` if given, else ``LABKIT_BENCH_FULL=1``."""
+    return os.environ.get("LABKIT_BENCH_FULL") == "1" if full is None else bool(full)
+
+
 def bench_reconstruct(
-    rig_path: Path, *, repeats: int = 1, out: Path | None = None
-) -> tuple[list[Measurement], list[str]]:
-    """The issue's target case, time-versus-error variants, and flat-versus-textured scenes."""
+    rig_path: Path, *, repeats: int = 1, out: Path | None = None, full: bool | None = None
+) -> tuple[list[Measurement], list[str | Plot | Table]]:
+    """The issue's target case, time-versus-error variants, skipping, and size scaling.
+
+    Parameters
+    ----------
+    rig_path : Path
+        Rig YAML of the simulated rig.
+    repeats : int
+        Runs of the target case and of short scaling sizes (median reported).
+    out : Path, optional
+        Report folder: the plots are written there.
+    full : bool, optional
+        Also run the full-size case and the 1024² and 2048² scaling sizes (minutes);
+        default from ``LABKIT_BENCH_FULL=1``.
+
+    Returns
+    -------
+    cases : list of Measurement
+    notes : list of str, Plot and Table
+        Shown under the stage's heading.
+    """
+    full = full_run(full)
     results: list[Measurement] = []
     main_case = simulated_case(rig_path, SHAPE, "colorchecker")
     bands7 = _bands(main_case, 7)
@@ -246,10 +330,11 @@ def bench_reconstruct(
         ("L2, 7 bands, no Φ", {"prior": "L2", "dispersion": None}, 7),
         ("L2, 7 bands, patch 128", {"prior": "L2", "patch_px": 128, "pad_px": 16}, 7),
     ]
+    variant_results: list[Measurement] = []
     for name, options, count in variants:
         options = {"dispersion": variant_case["model"], "weights": weights, **options}
         result, seconds = _run(variant_case, bands=_bands(variant_case, count), **options)
-        results.append(
+        variant_results.append(
             _measurement(
                 f"204×172 texture, {name}",
                 seconds,
@@ -260,6 +345,7 @@ def bench_reconstruct(
                 {"image": "204×172", "bands": count},
             )
         )
+    results += variant_results
 
     scenes = (
         ("fully textured", 0.0, {}),
@@ -282,23 +368,33 @@ def bench_reconstruct(
                 {"image": "408×344", "flat_fraction": fraction},
             )
         )
+    skipping = skipping_line(results[-2], results[-1])
 
-    if os.environ.get("LABKIT_BENCH_FULL") == "1":
-        full = simulated_case(rig_path, (2048, 2448), "colorchecker")
-        result, seconds, peak = _run_isolated(full, bands=_bands(full, 8), dispersion=full["model"])
+    if full:
+        full_case = simulated_case(rig_path, (2048, 2448), "colorchecker")
+        result, times, _, peak = _run_isolated(
+            full_case, bands=_bands(full_case, 8), dispersion=full_case["model"]
+        )
         results.append(
             _measurement(
                 "2448×2048 ColorChecker, 8 bands, L2, nonneg, Φ, auto:dmc",
-                seconds,
-                [seconds],
+                times[0],
+                times,
                 FULL_TARGET_S,
-                full,
+                full_case,
                 result,
                 {"image": "2448×2048", "bands": 8, "memory_target_mib": FULL_MEMORY_MIB},
                 peak,
             )
         )
-    notes = [
+        del full_case
+
+    sizes = SCALING_SIZES if full else ROUTINE_SCALING_SIZES
+    per_size = scaling_cases(rig_path, sizes, repeats=repeats)
+    summary = scaling_summary(per_size)
+    results += [*per_size, summary]
+
+    notes: list[str | Plot | Table] = [
         "Reconstruction inputs: simulated renders (1 nm grid, exact pixel areas, true lens "
         f"dispersion up to {main_case['max_shift_px']:g} px) plus Gaussian noise of "
         f"{NOISE:g} × the brightest raw value; Φ from an analytic to_reference model of the "
@@ -306,37 +402,199 @@ def bench_reconstruct(
         "truth; colour RMSE is relative to the brightest true raw colour.",
         f"Variants reuse the weight the target case chose ({weights}) so that they compare "
         "solver settings, not weight selection.",
+        skipping,
+        "Peak memory: the largest resident set so far of this process or a finished child; "
+        "for the full-size case and the scaling sizes, that of the fresh process the "
+        "reconstruction ran in (VmHWM), the simulation left out.",
     ]
-    if os.environ.get("LABKIT_BENCH_FULL") != "1":
+    if not full:
         notes.append(
-            "The full-size 2448×2048 case runs only with LABKIT_BENCH_FULL=1 (about 10 minutes)."
+            "The full-size 2448×2048 case and the 1024² and 2048² scaling sizes run only with "
+            "`labkit bench all`, `--full` or LABKIT_BENCH_FULL=1 (about 6 minutes more on 2 "
+            "quiet cores)."
         )
+    notes.append(scaling_table(per_size, summary))
     if out is not None:
-        notes.append(f"Time against error: {_plot(results, Path(out))}")
+        out = Path(out)
+        plot_time_vs_error(
+            {"204×172 texture, weight fixed": [_point(m) for m in variant_results]},
+            out / TIME_ERROR_PNG,
+            title="labkit reconstruct: time against error (prior, bands, rtol, patch, Φ)",
+            error_label="spectral RMSE / mean truth",
+        )
+        notes.append(Plot("Reconstruction: time against spectral error", TIME_ERROR_PNG))
+        pixels = [m.extra["pixels"] for m in per_size]
+        plot_scaling(
+            pixels,
+            {
+                "total (weights included)": (
+                    [m.seconds for m in per_size],
+                    summary.extra["exponent"],
+                ),
+                "patch solves only": (
+                    [m.extra["solve_s"] for m in per_size],
+                    summary.extra["exponent_solve"],
+                ),
+            },
+            out / SCALING_PNG,
+            title="labkit reconstruct: time against image size (texture, 7 bands)",
+        )
+        notes.append(Plot("Reconstruction: time against image size (log–log)", SCALING_PNG))
     return results, notes
 
 
-def _plot(results: list[Measurement], out: Path) -> str:
-    """Scatter of time against spectral error; returns the file name."""
-    import matplotlib
+def _point(m: Measurement) -> tuple[float, float, str]:
+    name = m.name.split(", ", 1)[-1]
+    return m.seconds, m.extra["spectral_rmse_rel"], name
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
-    from labkit.io.atomic import atomic_write
+def scaling_cases(rig_path: Path, sizes: tuple[int, ...], *, repeats: int) -> list[Measurement]:
+    """The target case's settings on size×size textured renders, each in a fresh process.
 
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    for m in results:
-        ax.scatter(m.seconds, m.extra["spectral_rmse_rel"])
-        ax.annotate(m.name, (m.seconds, m.extra["spectral_rmse_rel"]), fontsize=6)
-    ax.set_xscale("log")
-    ax.set_xlabel("time (s)")
-    ax.set_ylabel("spectral RMSE / mean truth")
-    ax.set_title("labkit reconstruct: time against error")
-    fig.tight_layout()
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=120)
-    plt.close(fig)
-    with atomic_write(out / "reconstruct_time_vs_error.png") as handle:
-        handle.write(buffer.getvalue())
-    return "reconstruct_time_vs_error.png"
+    Parameters
+    ----------
+    rig_path : Path
+        Rig YAML (its sensor must be at least as large as the largest size).
+    sizes : tuple of int
+        Image sides, px (even).
+    repeats : int
+        Runs of sizes whose first run takes less than :data:`SHORT_S` (median reported).
+
+    Returns
+    -------
+    list of Measurement
+        One per size; ``extra`` holds ``pixels``, ``weight_s`` and ``solve_s`` (median
+        times of weight selection and of the patch solves, s) and the errors of
+        :func:`errors`.
+    """
+    cases = []
+    for side in sizes:
+        case = simulated_case(rig_path, (side, side), "texture")
+        result, times, phases, peak = _run_isolated(
+            case,
+            repeats=repeats,
+            short_s=SHORT_S,
+            bands=_bands(case, 7),
+            dispersion=case["model"],
+            prior="L2",
+        )
+        measurement = _measurement(
+            f"scaling: {side}×{side} texture, 7 bands, L2, nonneg, Φ, auto:dmc",
+            float(np.median(times)),
+            times,
+            None,
+            case,
+            result,
+            {"image": f"{side}×{side}", "pixels": side * side, "bands": 7},
+            peak,
+        )
+        measurement.extra["weight_s"] = float(np.median(phases["weight_s"]))
+        measurement.extra["solve_s"] = float(np.median(phases["solve_s"]))
+        cases.append(measurement)
+        del case, result
+    return cases
+
+
+def scaling_summary(per_size: list[Measurement]) -> Measurement:
+    """The fitted exponents p of time ∝ pixels^p over the scaling cases, held to ≤ 1.2.
+
+    Parameters
+    ----------
+    per_size : list of Measurement
+        :func:`scaling_cases` output (``extra``: ``pixels``, ``solve_s``), ≥ 2 sizes.
+
+    Returns
+    -------
+    Measurement
+        ``seconds``: the sum of the sizes' median times, s; ``times``: those medians;
+        ``passed``: both the total-time and the solve-only exponent ≤
+        :data:`SCALING_EXPONENT_MAX`; ``extra``: ``exponent``, ``exponent_solve``,
+        ``exponent_max``, ``images``, ``seconds``, ``spectral_rmse_rel``.
+    """
+    pixels = [m.extra["pixels"] for m in per_size]
+    seconds = [m.seconds for m in per_size]
+    exponent = fit_exponent(pixels, seconds)
+    exponent_solve = fit_exponent(pixels, [m.extra["solve_s"] for m in per_size])
+    first, last = per_size[0].extra["image"], per_size[-1].extra["image"]
+    return Measurement(
+        f"scaling: time ∝ pixels^p, {first} … {last}",
+        float(sum(seconds)),
+        seconds,
+        max(m.peak_mib for m in per_size),
+        None,
+        max(exponent, exponent_solve) <= SCALING_EXPONENT_MAX,
+        {
+            "exponent": exponent,
+            "exponent_solve": exponent_solve,
+            "exponent_max": SCALING_EXPONENT_MAX,
+            "images": [m.extra["image"] for m in per_size],
+            "seconds": seconds,
+            "spectral_rmse_rel": [m.extra["spectral_rmse_rel"] for m in per_size],
+        },
+    )
+
+
+def scaling_table(per_size: list[Measurement], summary: Measurement) -> Table:
+    """The scaling cases as a Markdown table, the fitted exponents in its title line."""
+    extra = summary.extra
+    verdict = "pass" if summary.passed else "**FAIL**"
+    title = (
+        f"Time against image size (texture scene, the target case's settings, each size in a "
+        f"fresh process): fitted exponent p = {extra['exponent']:.3f} for the total time, "
+        f"{extra['exponent_solve']:.3f} for the patch solves alone (least squares in "
+        f"log–log, {extra['images'][0]} … {extra['images'][-1]}); "
+        f"{verdict} (≤ {extra['exponent_max']:g})."
+    )
+    rows = [
+        [
+            m.extra["image"],
+            f"{m.extra['pixels']:,}",
+            f"{m.seconds:.2f}",
+            str(len(m.times)),
+            f"{m.extra['weight_s']:.2f}",
+            f"{m.extra['solve_s']:.2f}",
+            f"{m.peak_mib:.0f}",
+            f"{m.extra['spectral_rmse_rel']:.4f}",
+            f"{m.extra['patches']} ({m.extra['flat']} flat)",
+        ]
+        for m in per_size
+    ]
+    columns = [
+        "image",
+        "pixels",
+        "median time (s)",
+        "runs",
+        "weights (s)",
+        "solve (s)",
+        "peak memory (MiB)",
+        "spectral RMSE",
+        "patches",
+    ]
+    return Table(title, columns, rows)
+
+
+def skipping_line(with_skipping: Measurement, without: Measurement) -> str:
+    """One sentence: what adaptive skipping saved on the same scene (time, patches, error).
+
+    Parameters
+    ----------
+    with_skipping, without : Measurement
+        The same scene reconstructed with and without skipping flat patches (``extra``:
+        ``patches``, ``flat``, ``spectral_rmse_rel``, ``flat_fraction``).
+
+    Returns
+    -------
+    str
+    """
+    saved = 1 - with_skipping.seconds / without.seconds
+    e_with = with_skipping.extra["spectral_rmse_rel"]
+    e_without = without.extra["spectral_rmse_rel"]
+    change = abs(e_with - e_without) / e_without
+    return (
+        f"Adaptive skipping saved {saved:.0%} of the time on the "
+        f"{with_skipping.extra['flat_fraction']:.0%}-flat scene: "
+        f"{with_skipping.seconds:.2f} s with skipping, {without.seconds:.2f} s without; "
+        f"{with_skipping.extra['flat']} of {with_skipping.extra['patches']} patches skipped "
+        f"as flat; spectral RMSE {e_with:.4f} with, {e_without:.4f} without "
+        f"({'equal within 1 %' if change <= 0.01 else f'{change:.1%} apart'})."
+    )
