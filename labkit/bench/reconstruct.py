@@ -97,25 +97,19 @@ def simulated_case(
     """
     from labkit.cfa import mosaic
     from labkit.sim import SimulatedRig
+    from labkit.sim.truth import colour_truth, spectral_truth
 
     rig = load_rig(rig_path)
     world = SimulatedRig(rig, shape=shape)
-    scene_obj = world.scene(scene)
-    light = world.light("unfiltered")
-    wavelengths = world.wavelengths
-    reflect = scene_obj.materials.resample(wavelengths, extrapolate="constant").values  # (f, K)
-    coverage = scene_obj.coverage_image(shape).astype(np.float64)  # (rows, cols, K)
-    vignetting = world.lens.vignetting_map()[..., None]
-    q = world.response.select(["R", "G", "B"]).resample(wavelengths).values  # (f, 3)
-    step = np.gradient(wavelengths)
-    colour = (coverage @ ((reflect * (light * step)[:, None]).T @ q)) * vignetting
+    colour = colour_truth(world, scene)
     irradiance = world.irradiance(scene, "unfiltered").astype(np.float64)
+    wall = np.zeros(shape, dtype=bool)
     if flat_fraction > 0:
         first = round(shape[1] * (1 - flat_fraction) / 2) * 2
         grey = colour[:, first:].mean(axis=(0, 1))
         colour[:, first:] = grey
         irradiance[:, first:] = mosaic(colour[:, first:], rig.cfa)
-        coverage[:, first:] = np.nan  # marks the wall for the spectral truth
+        wall[:, first:] = True
     exposure = 1.0 / float(irradiance.mean())
     rng = np.random.default_rng(seed)
     raw = irradiance * exposure
@@ -123,14 +117,9 @@ def simulated_case(
 
     def truth(bands_nm: np.ndarray) -> np.ndarray:
         """Reflectance × band-averaged light at `bands_nm` (rows, cols, n), raw units."""
-        half = 0.5 * float(np.mean(np.diff(bands_nm)))
-        light_at = np.array(
-            [light[(wavelengths >= b - half) & (wavelengths <= b + half)].mean() for b in bands_nm]
-        )
-        spectra = np.stack([np.interp(bands_nm, wavelengths, r) for r in reflect.T])  # (K, n)
-        cube = np.nan_to_num(coverage) @ (spectra * light_at)
-        cube[np.isnan(coverage[..., 0])] = np.nan  # the grey wall has no spectral truth
-        return cube * vignetting * exposure
+        cube = spectral_truth(world, scene, bands_nm, scale=exposure)
+        cube[wall] = np.nan  # the grey wall has no spectral truth
+        return cube
 
     return {
         "raw": raw,
