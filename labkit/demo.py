@@ -32,6 +32,7 @@ import yaml
 from tqdm import tqdm
 
 from labkit.io import display_on_one_scale, spectral_preview, write_png, write_text_atomic
+from labkit.io.tiff import json_default
 from labkit.plots import (
     plot_channel_errors,
     plot_crops,
@@ -105,7 +106,9 @@ def run_demo(out: str | Path, *, rig_path: str | Path | None = None, quick: bool
     plot_rig_spectra(world, out / "rig_spectra.png")
     plot_dispersion(world.lens, [450.0, 500.0, 650.0], out / "lens_dispersion.png")
     _write_report(report, rigs, rig_file, shape, times, captures, models, recons, evaluations)
-    write_text_atomic(out / "results.json", json.dumps(results, indent=1, default=_plain) + "\n")
+    write_text_atomic(
+        out / "results.json", json.dumps(results, indent=1, default=json_default) + "\n"
+    )
     _, page = report.write(out)
     return page
 
@@ -173,6 +176,7 @@ def _calibrate(rig: Rig, out: Path) -> dict[str, Any]:
     from calibration.dispersion_calibration import calibrate_dispersion
     from calibration.plots import plot_model
     from labkit.sim import SimulatedRig
+    from labkit.sim.truth import model_error
 
     images = load_scene_hdr(out / "hdr", "disks")
     bands = filter_bands(rig)
@@ -188,7 +192,7 @@ def _calibrate(rig: Rig, out: Path) -> dict[str, Any]:
     lens = SimulatedRig(rig).lens
     used = sorted(b.wavelength_nm for b in spectral.bands if b.used)
     grid = sorted({*used, *np.arange(np.ceil(used[0] / 5) * 5, used[-1], 5.0).tolist()})
-    error = _to_reference_error(spectral.model, lens, float(spectral.model.reference), grid)
+    error = model_error(spectral.model, lens, float(spectral.model.reference), grid)
     selection = spectral.model.selection
     summary = {
         "spectral": {
@@ -207,26 +211,6 @@ def _calibrate(rig: Rig, out: Path) -> dict[str, Any]:
         },
     }
     return {"spectral": spectral.model, "colour": colour.model, "summary": summary}
-
-
-def _to_reference_error(model, lens, reference_nm: float, wavelengths_nm: list[float]) -> dict:
-    """RMS and max |model − truth|, px, on a 16-px grid inside the calibrated region.
-
-    A ``to_reference`` model at a band position q is compared with minus the lens'
-    displacement at q (exact to first order: the field varies by < 0.3 % of itself over
-    the few pixels it moves).
-    """
-    rows, cols = lens.shape
-    yy, xx = np.mgrid[0:rows:16, 0:cols:16].astype(np.float64)
-    inside = model.region.contains(xx, yy)
-    x, y = xx[inside], yy[inside]
-    errors = []
-    for wavelength in wavelengths_nm:
-        mx, my = model.displacement(x, y, wavelength)
-        tx, ty = lens.relative_displacement(x, y, wavelength, reference_nm=reference_nm)
-        errors.append(np.hypot(mx + tx, my + ty))
-    everything = np.concatenate(errors)
-    return {"rms": float(np.sqrt(np.mean(everything**2))), "max": float(everything.max())}
 
 
 def _reconstruct(rig: Rig, out: Path, models: dict[str, Any]) -> dict[str, Any]:
@@ -446,8 +430,8 @@ def _write_report(report, rigs, rig_file, shape, times, captures, models, recons
         f"{spectral['keypoints']} keypoints; polynomial degree {spectral['degree_xy']} in x, y "
         f"and {spectral['degree_lambda']} in λ chosen by cross-validation (condition number "
         f"{spectral['condition_number']:.3g}). Against the simulated lens: RMS "
-        f"**{spectral['error_vs_lens_px']['rms']:.3f} px**, max "
-        f"{spectral['error_vs_lens_px']['max']:.3f} px. The colour-channel model (R and B "
+        f"**{spectral['error_vs_lens_px']['rms_px']:.3f} px**, max "
+        f"{spectral['error_vs_lens_px']['max_px']:.3f} px. The colour-channel model (R and B "
         f"onto G, {calibration['colour']['keypoints']} keypoints) drives the warping "
         "baselines."
     )
@@ -501,11 +485,3 @@ def _write_report(report, rigs, rig_file, shape, times, captures, models, recons
             report.heading("Patch spectra", 3)
             caption = "patch-centre spectra against the truth (registered per band)"
             report.figures([(figures["spectra"], caption)])
-
-
-def _plain(value: Any) -> Any:
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    return str(value)

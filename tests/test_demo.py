@@ -56,7 +56,7 @@ def test_demo_runs_the_whole_job_with_known_answers(demo_out: Path) -> None:
     below bilinear demosaicing's (0.034 against 0.048)."""
     results = json.loads((demo_out / "results.json").read_text())
     assert set(results["seconds"]) == {"capture", "hdr", "calibrate", "reconstruct", "evaluate"}
-    assert results["calibration"]["spectral"]["error_vs_lens_px"]["rms"] < 0.05
+    assert results["calibration"]["spectral"]["error_vs_lens_px"]["rms_px"] < 0.05
     assert set(results["reconstruction"]) == {
         "colorchecker", "texture", "colorchecker (§6.3 mean-colour)",
     }  # fmt: skip

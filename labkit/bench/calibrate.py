@@ -22,6 +22,7 @@ import numpy as np
 from labkit.bench.harness import Measurement, Plot, Table, peak_rss_mib, repeat_timed
 from labkit.bench.plots import plot_time_vs_error
 from labkit.rig import load_rig
+from labkit.sim.truth import model_error
 
 if TYPE_CHECKING:
     from calibration.keypoints import DispersionKeypoints
@@ -36,28 +37,6 @@ KEYPOINT_FRACTIONS = (1.0, 0.5, 0.25, 0.125, 0.0625)
 SHORT_S = 10.0
 """Model fits shorter than this (s) are repeated (median)."""
 TIME_ERROR_PNG = "calibrate_time_vs_error.png"
-
-
-def model_error(model, lens, reference_nm: float, wavelengths_nm, *, step_px: int = 16) -> dict:
-    """RMS and max |model − truth| (px) on a grid inside the calibrated region."""
-    rows, cols = lens.shape
-    yy, xx = np.mgrid[0:rows:step_px, 0:cols:step_px].astype(np.float64)
-    inside = model.region.contains(xx, yy)
-    x, y = xx[inside], yy[inside]
-    errors = {}
-    for wavelength in wavelengths_nm:
-        if model.variables == "xylambda":
-            mx, my = model.displacement(x, y, wavelength)
-        else:
-            mx, my = model.displacement(x, y, channel=wavelength)
-        tx, ty = lens.relative_displacement(x, y, wavelength, reference_nm=reference_nm)
-        errors[float(wavelength)] = np.hypot(mx - tx, my - ty)
-    everything = np.concatenate(list(errors.values()))
-    return {
-        "rms_px": float(np.sqrt(np.mean(everything**2))),
-        "max_px": float(everything.max()),
-        "worst_band_rms_px": max(float(np.sqrt(np.mean(e**2))) for e in errors.values()),
-    }
 
 
 def bench_calibrate(
