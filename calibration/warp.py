@@ -16,6 +16,11 @@ The model is evaluated on a grid every `field_step_px` pixels and interpolated t
 pixel with cubic splines (dispersion fields are smooth; at the default 8 px the
 interpolation error of a smooth field is far below 0.001 px), which makes thin-plate
 spline models affordable on full-size images. ``field_step_px=1`` evaluates every pixel.
+
+A ``to_reference`` model (the direction image formation uses) is inverted on the fly:
+the band position q of reference position p solves ``q + d_to(q) = p``, found by the
+fixed-point iteration ``q ← p − d_to(q)`` (a contraction, as dispersion fields change by
+far less than a pixel per pixel) to :data:`INVERSION_TOLERANCE_PX`.
 """
 
 from __future__ import annotations
@@ -32,6 +37,10 @@ from labkit.errors import DataError
 
 #: Pixels resampled per block (bounds the per-block temporaries: ~40 B per pixel).
 _BLOCK_PIXELS = 1 << 18
+#: Accuracy of the inversion of a ``to_reference`` model, px.
+INVERSION_TOLERANCE_PX = 1e-6
+#: Fixed-point iterations allowed for that inversion.
+_INVERSION_ITERATIONS = 50
 #: Boundary modes of :func:`scipy.ndimage.map_coordinates` that never produce NaN.
 _MODES = ("nearest", "reflect", "mirror", "grid-mirror", "wrap", "grid-wrap", "constant")
 
@@ -104,9 +113,9 @@ def correct_channels(
     rgb : ndarray (rows, cols, 3)
         A demosaiced colour image (channels R, G, B).
     model : DispersionModel
-        A colour-channel (``variables="xy"``) ``from_reference`` model calibrated on
-        images of this size; every channel it has a field for is warped onto its
-        reference channel.
+        A colour-channel (``variables="xy"``) model calibrated on images of this size
+        (``from_reference``, or ``to_reference`` inverted on the fly); every channel it
+        has a field for is warped onto its reference channel.
     order : int
         Interpolation spline order (1 = bilinear).
     field_step_px : int
@@ -120,8 +129,8 @@ def correct_channels(
     Raises
     ------
     DataError
-        A spectral or ``to_reference`` model, a model for another image size, or an
-        image that is not (rows, cols, 3) or holds NaN/Inf.
+        A spectral model, a model for another image size, or an image that is not
+        (rows, cols, 3) or holds NaN/Inf.
     """
     rgb = np.asarray(rgb)
     if rgb.ndim != 3 or rgb.shape[2] != 3:
@@ -160,9 +169,9 @@ def correct_spectral(
     wavelengths_nm : ndarray (bands,)
         Band wavelengths, nm; band b is resampled at p + d(p, λ_b).
     model : DispersionModel
-        A spectral (``variables="xylambda"``) ``from_reference`` model calibrated on
-        images of this size. Bands outside its calibrated wavelength range use the
-        model's extrapolation.
+        A spectral (``variables="xylambda"``) model calibrated on images of this size
+        (``from_reference``, or ``to_reference`` inverted on the fly). Bands outside its
+        calibrated wavelength range use the model's extrapolation.
     order : int
         Interpolation spline order (1 = bilinear).
     field_step_px : int
@@ -177,7 +186,7 @@ def correct_spectral(
     Raises
     ------
     DataError
-        A colour-channel or ``to_reference`` model, a model for another image size, a
+        A colour-channel model, a model for another image size, a
         wavelength count that does not match the bands, or NaN/Inf in the cube.
     """
     cube = np.asarray(cube)
@@ -251,10 +260,12 @@ def _model_field(
 
         def exact(r0: int, r1: int) -> tuple[np.ndarray, np.ndarray]:
             y = np.arange(r0, r1, dtype=np.float64)[:, None]
-            return model.displacement(x, y, *extra, **kwargs)
+            return from_reference_displacement(model, x, y, *extra, **kwargs)
 
         return exact
-    node_dx, node_dy = model.displacement(nodes_x[None, :], nodes_y[:, None], *extra, **kwargs)
+    node_dx, node_dy = from_reference_displacement(
+        model, nodes_x[None, :], nodes_y[:, None], *extra, **kwargs
+    )
     # not-a-knot cubic splines through the nodes: along x to every column (a dense
     # (cols, nx) matrix), then along y as B-spline coefficients evaluated per block
     knots_x, to_coef_x = _spline_operator(nodes_x)
@@ -268,6 +279,48 @@ def _model_field(
         return both[:, :cols], both[:, cols:]
 
     return interpolated
+
+
+def from_reference_displacement(
+    model: DispersionModel,
+    x: np.ndarray,
+    y: np.ndarray,
+    wavelength_nm: float | None = None,
+    *,
+    channel: str | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Displacement (dx, dy) px from reference positions (x, y) px to where a band images them.
+
+    A ``from_reference`` model gives it directly; a ``to_reference`` model is inverted by
+    fixed-point iteration to :data:`INVERSION_TOLERANCE_PX`.
+
+    Raises
+    ------
+    DataError
+        The inversion does not converge (a field that folds the image onto itself).
+    """
+    kwargs = {"channel": channel} if channel is not None else {}
+    extra = () if wavelength_nm is None else (wavelength_nm,)
+    if model.direction == "from_reference":
+        return model.displacement(x, y, *extra, **kwargs)
+    x, y = np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(y, np.float64))
+    dx, dy = model.displacement(x, y, *extra, **kwargs)
+    qx, qy = x - dx, y - dy
+    for _ in range(_INVERSION_ITERATIONS):
+        dx, dy = model.displacement(qx, qy, *extra, **kwargs)
+        new_x, new_y = x - dx, y - dy
+        change = float(np.max(np.hypot(new_x - qx, new_y - qy), initial=0.0))
+        qx, qy = new_x, new_y
+        if not np.isfinite(change):
+            break
+        if change <= INVERSION_TOLERANCE_PX:
+            return qx - x, qy - y
+    where = f" at {wavelength_nm:g} nm" if wavelength_nm is not None else ""
+    where += f" for channel {channel}" if channel is not None else ""
+    raise DataError(
+        f"could not invert the to_reference dispersion model{where} (fixed-point iteration "
+        "did not converge); check the model, or calibrate a from_reference one for warping"
+    )
 
 
 def _nodes(size: int, step: int) -> np.ndarray | None:
@@ -299,12 +352,6 @@ def _check_model(model: DispersionModel, shape: tuple[int, int], variables: str)
             "this is a colour-channel dispersion model (R/B relative to G); warp colour "
             "images with correct_channels, or calibrate a spectral model between filter "
             "bands for spectral images"
-        )
-    if model.direction != "from_reference":
-        raise DataError(
-            "this dispersion model maps band positions to the reference (to_reference, for "
-            "image formation); correction by warping needs a from_reference model: "
-            "calibrate one with `labkit calibrate dispersion --direction from_reference`"
         )
     model_shape = tuple(int(v) for v in model.image_shape)
     if model_shape != tuple(shape):

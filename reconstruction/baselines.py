@@ -89,9 +89,9 @@ def baseline(
     cfa : str
         Bayer layout of `raw`, e.g. ``"GBRG"``.
     dispersion : DispersionModel, optional
-        A colour-channel (``variables="xy"``), ``from_reference`` dispersion model
-        calibrated on images of this size: the Red and Blue channels are then warped
-        onto Green (Rudakova–Monasse correction).
+        A colour-channel (``variables="xy"``) dispersion model calibrated on images of
+        this size (either direction; see :mod:`calibration.warp`): the Red and Blue
+        channels are then warped onto Green (Rudakova–Monasse correction).
     order : int
         Spline order of the warping interpolation (1 = bilinear).
     field_step_px : int

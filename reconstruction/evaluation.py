@@ -126,7 +126,7 @@ def baseline_images(
     methods : sequence of str
         Keys of :data:`reconstruction.baselines.BASELINES`.
     colour_dispersion : DispersionModel, optional
-        A ``from_reference`` colour-channel model (reference G) of this image size; adds
+        A colour-channel model (reference G, either direction) of this image size; adds
         ``"<method> + warp"`` images (Rudakova–Monasse correction, §4.6.4).
 
     Returns

@@ -59,6 +59,9 @@ _FIELDS = (
     "texture",
     "samples",
     "flat",
+    "active",
+    "polish_rounds",
+    "exact",
 )
 
 
@@ -106,6 +109,7 @@ class SolverOptions:
     max_iter: int = 1000
     cg_rtol: float = 1e-5
     step_px: float = 0.1
+    exact: bool = False
 
 
 def chunk_sizes(length: int, target: int) -> tuple[int, ...]:
@@ -232,6 +236,7 @@ def solve_patch(
         max_iter=solver.max_iter,
         x0=x0,
         cg_rtol=solver.cg_rtol,
+        exact_nonneg=solver.exact,
     )
     report = solution.report
     cg = report.cg_iterations
@@ -244,6 +249,9 @@ def solve_patch(
         cg_mean=float(np.mean(cg)) if cg else 0.0,
         objective=report.objective,
         samples=formation.colour_matrices.shape[0],
+        active=0 if report.polish is None else report.polish.active,
+        polish_rounds=0 if report.polish is None else report.polish.rounds,
+        exact=float(report.polish is not None and report.polish.status == "optimal"),
         seconds=time.perf_counter() - start,
     )
     return solution.latent, record
@@ -346,12 +354,15 @@ def reconstruct_patches(
             # each block wrote its record at its first output pixel (in the padded frame)
             first_row = 0 if i == 0 else int(r0) + pad
             first_col = 0 if j == 0 else int(c0) + pad
-            values = full[first_row, first_col : first_col + len(_FIELDS), n]
+            values = full[
+                first_row : first_row + core_rows, first_col : first_col + core_cols, n
+            ].ravel()[: len(_FIELDS)]
             record = dict(zip(_FIELDS, (float(v) for v in values), strict=True))
             record["phi"] = PHI_STATES[int(record["phi"])]
             record["converged"] = bool(record["converged"])
             record["flat"] = bool(record["flat"])
-            for key in ("iterations", "cg_max", "samples"):
+            record["exact"] = bool(record["exact"])
+            for key in ("iterations", "cg_max", "samples", "active", "polish_rounds"):
                 record[key] = int(record[key])
             records.append(
                 {"row": int(r0), "col": int(c0), "rows": core_rows, "cols": core_cols, **record}

@@ -59,6 +59,7 @@ def test_demo_runs_the_whole_job_with_known_answers(demo_out: Path) -> None:
     assert results["calibration"]["spectral"]["error_vs_lens_px"]["rms_px"] < 0.05
     assert set(results["reconstruction"]) == {
         "colorchecker", "texture", "colorchecker (§6.3 mean-colour)",
+        "colorchecker (§3.9.2 warp)",
     }  # fmt: skip
     chart = results["evaluation"]["colorchecker"]["methods"]
     ours = chart["spectral: colorchecker"]

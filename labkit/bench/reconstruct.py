@@ -317,6 +317,7 @@ def bench_reconstruct(
         ("Lap2, 7 bands", {"prior": "Lap2"}, 7),
         ("L1, 7 bands", {"prior": "L1"}, 7),
         ("L2, 7 bands, no Φ", {"prior": "L2", "dispersion": None}, 7),
+        ("L2, 7 bands, Φ-free then warp (§3.9.2)", {"prior": "L2", "correction": "warp"}, 7),
         ("L2, 7 bands, patch 128", {"prior": "L2", "patch_px": 128, "pad_px": 16}, 7),
     ]
     variant_results: list[Measurement] = []

@@ -2,7 +2,7 @@
 
 The baseline the thesis compares against (Rudakova and Monasse): each colour channel,
 or each spectral band, is resampled (bilinear) onto the reference geometry with a
-``from_reference`` dispersion model.
+dispersion model (``from_reference``; a ``to_reference`` model is inverted on the fly).
 """
 
 from __future__ import annotations
@@ -25,8 +25,8 @@ def register(commands: argparse._SubParsersAction) -> None:
         description="A raw (mosaic) EXR is demosaiced bilinearly and its Red and Blue "
         "channels are warped onto Green with a colour-channel model (`--reference G`); the "
         "result is an RGB EXR plus a PNG preview. A spectral EXR has every band warped onto "
-        "the reference band with a spectral model; the result is a spectral EXR. The model "
-        "must be calibrated in the from_reference direction.",
+        "the reference band with a spectral model; the result is a spectral EXR. Either model "
+        "direction works (a to_reference model is inverted by fixed-point iteration).",
     )
     warp.add_argument("image", type=Path, help="raw EXR (from `labkit hdr`) or spectral EXR")
     warp.add_argument("--model", type=Path, required=True, help="dispersion model YAML")

@@ -43,7 +43,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--colour-dispersion",
         type=Path,
-        help="from_reference colour-channel model YAML: adds '<method> + warp' baselines",
+        help="colour-channel model YAML (either direction): adds '<method> + warp' baselines",
     )
     parser.add_argument(
         "--image",

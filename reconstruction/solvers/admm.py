@@ -33,6 +33,7 @@ import numpy as np
 from labkit.errors import DataError
 from reconstruction.operators import LinearOperator
 from reconstruction.problem import Problem
+from reconstruction.solvers.active_set import PolishReport, polish
 from reconstruction.solvers.cg import conjugate_gradient
 from reconstruction.solvers.fourier import FourierSolver
 
@@ -73,6 +74,8 @@ class SolveReport:
         Objective after each iteration (with ``track_objective``).
     accelerated : int
         Iterations whose next (z, u) came from Anderson extrapolation.
+    polish : PolishReport or None
+        The active-set finish of a non-negative L2-type problem (None: not run).
     """
 
     iterations: int = 0
@@ -86,6 +89,7 @@ class SolveReport:
     splits: list[str] = field(default_factory=list)
     history: list[float] = field(default_factory=list)
     accelerated: int = 0
+    polish: PolishReport | None = None
 
     def summary(self) -> dict:
         """A compact dict for logs."""
@@ -96,6 +100,8 @@ class SolveReport:
             "objective": self.objective,
             "cg_iterations_max": max(cg) if cg else 0,
             "cg_iterations_mean": float(np.mean(cg)) if cg else 0.0,
+            "polish": None if self.polish is None else self.polish.status,
+            "polish_rounds": 0 if self.polish is None else self.polish.rounds,
         }
 
 
@@ -243,6 +249,7 @@ def solve(
     cg_max_iter: int = 100,
     penalty: float | None = None,
     track_objective: bool = False,
+    exact_nonneg: bool = False,
 ) -> Solution:
     """Minimise `problem` by ADMM (or one quadratic solve when nothing needs splitting).
 
@@ -264,6 +271,11 @@ def solve(
         Initial ρ for every split; default from the data term's scale.
     track_objective : bool
         Record the objective after each iteration in ``report.history`` (costly).
+    exact_nonneg : bool
+        Finish a problem whose only split is non-negativity (L2-type priors) with the
+        primal–dual active-set method (:mod:`~reconstruction.solvers.active_set`), which
+        reaches the exact optimum; ADMM's residual test alone stops 1–10 % above it at
+        the small weights the DMC picks. Costs 2–4× the ADMM solve with Φ.
     """
     shape = problem.shape
     if not (0 < rtol < 1):
@@ -354,7 +366,12 @@ def solve(
                 anderson.reset()
                 step.refresh()
     report.penalties = [s.rho for s in splits]
-    return _finish(problem, projected.copy() if problem.nonneg else x, report, step)
+    x = projected.copy() if problem.nonneg else x
+    if exact_nonneg and problem.nonneg and len(splits) == 1:
+        exact = _QuadraticStep(problem, [], cg_rtol, cg_max_iter)
+        x, report.polish = polish(problem, x, exact.apply, exact.solver)
+        report.converged = report.polish.status == "optimal" or report.converged
+    return _finish(problem, x, report, step)
 
 
 class _Anderson:

@@ -172,6 +172,28 @@ class FourierSolver:
         result = from_quadruples(out.reshape(-1, 4, n), (rows, cols))
         return scipy.fft.ifft2(result, axes=(0, 1), overwrite_x=True).real
 
+    def impulse_responses(self) -> np.ndarray:
+        """Columns of K⁻¹ at the 4n impulses of one Bayer period, (2, 2, n, rows, cols, n).
+
+        ``g[p, q, j]`` is K⁻¹ applied to a unit impulse at pixel (p, q), band j. K is
+        periodic with the 2×2 mosaic period, so the column of any impulse at (r, c) is
+        ``g[r % 2, c % 2, j]`` rolled by (r − r % 2, c − c % 2).
+        """
+        rows, cols = self.shape
+        n = self.channels
+        impulses = np.zeros((rows, cols, n, 4 * n))
+        for p in range(2):
+            for q in range(2):
+                for j in range(n):
+                    impulses[p, q, j, (2 * p + q) * n + j] = 1.0
+        spectrum = to_quadruples(scipy.fft.fft2(impulses, axes=(0, 1))).reshape(-1, 4 * n, 4 * n)
+        out = self._inverse @ spectrum
+        out += self._inverse @ (spectrum - self._matrix @ out)
+        columns = scipy.fft.ifft2(
+            from_quadruples(out.reshape(-1, 4, n, 4 * n), (rows, cols)), axes=(0, 1)
+        ).real  # (rows, cols, n, 4n)
+        return np.moveaxis(columns, 3, 0).reshape(2, 2, n, rows, cols, n)
+
     def solve(self, b: np.ndarray, *, refine: bool = True) -> np.ndarray:
         """x with K x = b; `b` and x are (rows, cols, n) real.
 

@@ -153,6 +153,24 @@ def test_flat_grey_with_rig_and_dispersion(
     assert log["dispersion"]["variables"] == "xylambda"
 
 
+def test_warp_correction_takes_a_from_reference_model(inputs, tmp_path: Path, capsys) -> None:
+    """§3.9.2: solve without Φ, then warp; a flat grey scene stays grey to 1e-3."""
+    out = tmp_path / "out"
+    args = ["reconstruct", str(inputs["grey"]), "--response", str(inputs["response"]),
+            "--bands", BANDS, "--dispersion", str(inputs["model_from"]),
+            "--correction", "warp", "--weights", "fixed:0.01", "--patch-px", "32",
+            "--quiet", "--out", str(out)]  # fmt: skip
+    assert main(args) == 0
+    assert "solved without Φ, then warped" in capsys.readouterr().out
+    raw_colour = _read_rgb_exr(out / "raw_colour.exr")
+    np.testing.assert_allclose(raw_colour, np.broadcast_to(GREY, (*SHAPE, 3)), rtol=1e-3)
+    log = json.loads((out / "log.json").read_text())
+    assert log["dispersion"]["correction"] == "warp"
+    assert log["dispersion"]["direction"] == "from_reference"
+    assert log["patches"]["phi_used"] == 0 and log["warp_seconds"] >= 0
+    assert read_spectral_exr(out / "spectral.exr").labkit["correction"] == "warp"
+
+
 def test_colour_latent_writes_no_spectral_image(inputs, tmp_path: Path) -> None:
     out = tmp_path / "out"
     args = ["reconstruct", str(inputs["grey"]), "--latent", "colour", "--weights", "fixed:0.01",
@@ -226,7 +244,8 @@ def test_help_documents_every_option(capsys) -> None:
             assert option in text
     for option in ("--rig", "--response", "--bands", "--dispersion", "--prior", "--nonneg",
                    "--no-nonneg", "--weights", "--latent", "--reference", "--rtol", "--patch-px",
-                   "--pad-px", "--scheduler", "--out", "--quiet"):  # fmt: skip
+                   "--pad-px", "--scheduler", "--out", "--quiet", "--correction",
+                   "--exact"):  # fmt: skip
         assert option in text
     for prior in PRIORS:
         assert prior in text, f"prior {prior} is missing from the --prior help"
@@ -258,6 +277,9 @@ def test_help_documents_every_option(capsys) -> None:
         ("grey", ["--response", "R", "--dispersion", "model_small"],
          "calibrated for 32×48 px images but the raw image is 64×96 px"),
         ("grey", ["--response", "R", "--dispersion", "model_from"], "needs to_reference"),
+        ("grey", ["--response", "R", "--correction", "warp"], "--correction warp needs"),
+        ("grey", ["--response", "R", "--correction", "tilt"], "--correction is 'tilt'"),
+        ("grey", ["--response", "R", "--prior", "L1", "--exact"], "L1 has L1 terms"),
         ("grey", ["--response", "R", "--dispersion", "missing.yaml"], "does not exist"),
         ("grey", ["--response", "R", "--latent", "colour", "--bands", BANDS], "no --bands"),
         ("grey", ["--response", "R", "--patch-px", "30.5"], "--patch-px is '30.5'"),

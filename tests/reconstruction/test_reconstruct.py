@@ -6,6 +6,7 @@ import os
 
 import numpy as np
 import pytest
+from _helpers import planted_dispersion_model
 from _problems import RESPONSE, blobs
 from test_dispersion_operator import ConstantField
 from test_image_formation import spectral_model
@@ -49,6 +50,8 @@ def grey_raw(shape=SHAPE, colour=(0.3, 0.5, 0.2)) -> np.ndarray:
             "to_reference",
         ),
         ({"response": None}, "camera response"),
+        ({"correction": "sideways"}, "unknown correction"),
+        ({"correction": "warp"}, "needs a dispersion model"),
     ],
 )
 def test_bad_input_is_refused_early(change: dict, message: str) -> None:
@@ -114,30 +117,53 @@ def test_negligible_dispersion_is_skipped_and_textured_patches_use_phi() -> None
 
 
 def test_planted_shift_is_undone() -> None:
-    """A planted per-band shift: the Φ-aware raw colour matches the truth better."""
+    """A planted per-band shift (up to 3 px): Φ in the problem, and the §3.9.2 variant
+    (solve without Φ, then warp with the to_reference model inverted, or with the
+    equivalent from_reference model), each more than halve the plain solve's raw-colour
+    error. Measured RMS: plain 5.2, Φ 1.4, warp 2.0 (both directions equal)."""
     rng = np.random.default_rng(1)
     space = LatentSpace.spectral(RESPONSE_RGB)
     model = spectral_model(ConstantField((1.5, -1.0), per_nm=True), shape=(64, 64))
     truth = blobs((64, 64), space.channels, rng, count=6)
     raw = build_formation(space, (64, 64), "GBRG", model=model).forward(truth)
     truth_colour = space.raw_colour(truth)
-    errors = {}
-    for name, disp in (("plain", None), ("dispersion", model)):
+    from_model = planted_dispersion_model(
+        {"spectral": ConstantField((-1.5, 1.0), per_nm=True)},
+        shape=(64, 64),
+        direction="from_reference",
+        wavelength_span=(400.0, 700.0),
+    )
+    errors, results = {}, {}
+    for name, disp, correction in (
+        ("plain", None, "model"),
+        ("dispersion", model, "model"),
+        ("warp", model, "warp"),
+        ("warp from_reference", from_model, "warp"),
+    ):
         result = reconstruct(
             raw,
             cfa="GBRG",
             response=RESPONSE_RGB,
             dispersion=disp,
+            correction=correction,
             weights="fixed:0.003",
             patch_px=64,
             pad_px=8,
             flat_threshold=None,
         )
         inner = (slice(8, -8), slice(8, -8))
+        results[name] = result
         errors[name] = float(
             np.sqrt(np.mean((result.raw_colour[inner] - truth_colour[inner]) ** 2))
         )
     assert errors["dispersion"] < 0.5 * errors["plain"]
+    assert errors["warp"] < 0.5 * errors["plain"]
+    assert results["warp"].log["dispersion"]["correction"] == "warp"
+    assert "warp_seconds" in results["warp"].log
+    assert results["warp"].log["patches"]["phi_used"] == 0
+    np.testing.assert_allclose(
+        results["warp"].spectral, results["warp from_reference"].spectral, atol=1e-5
+    )
 
 
 def test_weights_by_mse_are_locally_optimal() -> None:
