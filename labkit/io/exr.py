@@ -174,7 +174,7 @@ def write_rgb_exr(path: str | Path, rgb: np.ndarray, labkit: dict[str, Any] | No
     import OpenEXR
 
     channels = {name: _checked_plane(path, name, rgb[:, :, i]) for i, name in enumerate("RGB")}
-    provenance = {"format": FORMAT_VERSION, "kind": "rgb", **(labkit or {})}
+    provenance = {**(labkit or {}), "format": FORMAT_VERSION, "kind": "rgb"}
     header = {
         "compression": OpenEXR.ZIP_COMPRESSION,
         "type": OpenEXR.scanlineimage,

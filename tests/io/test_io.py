@@ -79,3 +79,19 @@ def test_atomic_files_get_the_usual_mode_not_mkstemps_0600(tmp_path) -> None:
     write_text_atomic(tmp_path / "note.txt", "hello")
     assert stat.S_IMODE((tmp_path / "note.txt").stat().st_mode) == 0o666 & ~_UMASK
     assert (tmp_path / "note.txt").read_text() == "hello"
+
+
+def test_rgb_exr_is_labelled_rgb_whatever_provenance_it_carries(tmp_path: Path) -> None:
+    """`labkit correct warp` passes a raw image's provenance (kind: raw) along; the RGB
+    file must still say kind: rgb, and its pixels come back exactly."""
+    from labkit.io import read_rgb_exr, write_rgb_exr
+    from labkit.io.exr import _provenance, _read
+
+    rgb = np.random.default_rng(0).random((6, 8, 3)).astype(np.float32)
+    path = tmp_path / "rgb.exr"
+    write_rgb_exr(path, rgb, {"kind": "raw", "format": "old", "cfa": "GBRG"})
+    header, _ = _read(path)
+    provenance = _provenance(path, header)
+    assert provenance["kind"] == "rgb" and provenance["cfa"] == "GBRG"
+    assert provenance["format"] != "old"
+    np.testing.assert_array_equal(read_rgb_exr(path), rgb)
