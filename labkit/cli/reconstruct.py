@@ -121,7 +121,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         action="store_true",
         help="with --nonneg and an L2-type prior, finish every patch with a primal–dual "
         "active-set solve: the exact optimum instead of ADMM's (1–10 %% above it at small "
-        "weights), at 2–4× the time",
+        "weights), at several times the cost",
     )
     parser.add_argument(
         "--patch-px",

@@ -275,7 +275,7 @@ def solve(
         Finish a problem whose only split is non-negativity (L2-type priors) with the
         primal–dual active-set method (:mod:`~reconstruction.solvers.active_set`), which
         reaches the exact optimum; ADMM's residual test alone stops 1–10 % above it at
-        the small weights the DMC picks. Costs 2–4× the ADMM solve with Φ.
+        the small weights the DMC picks. Costs several times the ADMM solve with Φ.
     """
     shape = problem.shape
     if not (0 < rtol < 1):
