@@ -252,19 +252,17 @@ def _model_field(
     if int(step) != step or step < 1:
         raise DataError(f"field_step_px must be a positive integer, got {step}")
     rows, cols = shape
-    kwargs = {"channel": channel} if channel is not None else {}
-    extra = () if wavelength_nm is None else (wavelength_nm,)
     nodes_y, nodes_x = _nodes(rows, int(step)), _nodes(cols, int(step))
     if nodes_y is None or nodes_x is None:
         x = np.arange(cols, dtype=np.float64)[None, :]
 
         def exact(r0: int, r1: int) -> tuple[np.ndarray, np.ndarray]:
             y = np.arange(r0, r1, dtype=np.float64)[:, None]
-            return from_reference_displacement(model, x, y, *extra, **kwargs)
+            return from_reference_displacement(model, x, y, wavelength_nm, channel=channel)
 
         return exact
     node_dx, node_dy = from_reference_displacement(
-        model, nodes_x[None, :], nodes_y[:, None], *extra, **kwargs
+        model, nodes_x[None, :], nodes_y[:, None], wavelength_nm, channel=channel
     )
     # not-a-knot cubic splines through the nodes: along x to every column (a dense
     # (cols, nx) matrix), then along y as B-spline coefficients evaluated per block

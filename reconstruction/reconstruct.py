@@ -289,7 +289,7 @@ def reconstruct(
     rtol, max_iter : float, int
         ADMM relative tolerance and iteration limit per patch.
     exact : bool
-        With non-negativity and L2-type priors, finish every patch with the primal–dual
+        With non-negativity and L2-type priors, finish every patch with a projected-Newton
         active-set method: the exact optimum (ADMM's residual test alone can stop
         1–10 % above it at small weights), at several times the solve time with Φ (7× on
         the bench's texture crop). Weights are still chosen with plain ADMM solves, and

@@ -119,7 +119,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--exact",
         action="store_true",
-        help="with --nonneg and an L2-type prior, finish every patch with a primal–dual "
+        help="with --nonneg and an L2-type prior, finish every patch with a projected-Newton "
         "active-set solve: the exact optimum instead of ADMM's (1–10 %% above it at small "
         "weights), at several times the cost",
     )

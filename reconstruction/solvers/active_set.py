@@ -1,15 +1,16 @@
-"""Exact optimum of the non-negative quadratic problems by a primal–dual active-set method.
+"""Exact optimum of the non-negative quadratic problems by a projected-Newton active-set method.
 
 With L2-type priors (L2, Lap1, Lap2, L2L2) and non-negativity, problem (3.1) is the bound
 constrained quadratic programme ``min ½ xᵀKx − bᵀx, x ≥ 0`` with
 ``K = 2AᵀA + Σ_j 2w_j D_jᵀD_j + 2εI`` and ``b = 2Aᵀy``. Its KKT conditions are
 ``Kx − b = μ, x ≥ 0, μ ≥ 0, xᵀμ = 0``. ADMM's residual test stops while directions curved
 only by a small prior are still far off (1–10 % above the optimum at the weights the DMC
-picks), so :func:`polish` finishes its result with the primal–dual active-set method
-(Hintermüller, Ito & Kunisch 2002; a semismooth Newton method): given a guess S of the
-active set it solves the problem with ``x_S = 0`` exactly, takes ``μ = Kx − b``, and updates
-``S ← {i ∈ S : μ_i > 0} ∪ {i ∉ S : x_i < 0}``; when S repeats, x satisfies the KKT
-conditions. Warm-started from ADMM, a few rounds suffice.
+picks), so :func:`polish` finishes its result with Bertsekas' projected Newton method: the
+active set S holds the values at zero whose gradient pushes outwards; the problem with
+``x_S = 0`` is solved on the free values, and the step towards that solution is projected
+onto x ≥ 0 and shortened until the objective falls enough (Armijo). It stops when the KKT
+residual is below :data:`KKT_TOLERANCE`. The rounds locate S with a loose solve tolerance
+and switch to a tight one once S repeats. Warm-started from ADMM, 5–20 rounds suffice.
 
 Each round solves ``K_FF x_F = b_F`` on the free set F by conjugate gradients
 preconditioned with the FFT solver K̃ (exact without Φ; Φ by mean translations) restricted
@@ -38,7 +39,7 @@ MAX_ACTIVE = 2000
 factorised in ~0.1 s); beyond, the most strongly held values."""
 
 MAX_ROUNDS = 30
-"""Active-set rounds before giving up (the best feasible iterate is kept)."""
+"""Newton rounds before giving up (the last iterate, never worse than the start, is kept)."""
 
 CG_RTOL = 1e-7
 """Relative residual of the restricted solves once the active set has settled."""
@@ -52,11 +53,8 @@ _ARMIJO = 1e-4
 ROUND_RTOL = 1e-4
 """Relative residual of the rounds before the active set settles (they only locate it)."""
 
-MIN_ADDED = 64
-"""Values that may join the active set per round, at least (see :func:`_next_active`)."""
-
 _ACTIVE_TOLERANCE = 1e-10
-"""Values and multipliers within this fraction of their scale count as zero."""
+"""Values within this fraction of the largest value count as zero."""
 
 
 @dataclass
@@ -66,10 +64,11 @@ class PolishReport:
     Attributes
     ----------
     status : str
-        ``"optimal"`` (KKT satisfied), ``"rounds"`` (:data:`MAX_ROUNDS` reached),
+        ``"optimal"`` (KKT residual ≤ :data:`KKT_TOLERANCE`), ``"rounds"``
+        (:data:`MAX_ROUNDS` reached),
         ``"stalled"`` (no decrease along the projected step) or ``"singular"``.
     rounds : int
-        Active-set rounds (restricted solves).
+        Newton rounds (restricted solves).
     active : int
         Size of the final active set.
     cg_iterations : list of int
@@ -144,8 +143,7 @@ def polish(
     problem : Problem
         Non-negative, with L2-type priors only (nothing but the constraint to split).
     x_start : ndarray
-        A feasible estimate (ADMM's projected iterate); its zeros with a positive
-        gradient are the first active set.
+        A feasible estimate (ADMM's projected iterate).
     apply : callable
         x ↦ K x with the true A (and Φ).
     solver : FourierSolver
@@ -153,12 +151,12 @@ def polish(
     cg_rtol, cg_max_iter : float, int
         Each restricted solve's tolerance (default :data:`CG_RTOL`) and limit.
     max_rounds : int
-        Active-set rounds allowed.
+        Newton rounds allowed.
 
     Returns
     -------
     x : ndarray
-        The best feasible iterate seen (`x_start` if none was better).
+        The last iterate: feasible, and its objective never above `x_start`'s.
     report : PolishReport
     """
     report = PolishReport()
@@ -225,26 +223,3 @@ def polish(
         previous = active
     report.status = "rounds"
     return x, report
-
-
-def _next_active(
-    active: np.ndarray, x: np.ndarray, multipliers: np.ndarray, scale_b: float
-) -> np.ndarray:
-    """The PDAS update, with the additions limited to the most negative values.
-
-    ``{i ∈ S : μ_i > 0} ∪ {i ∉ S : x_i < 0}``; at most ``max(MIN_ADDED, |S|)`` values join
-    per round, which keeps the dense capacitance matrix small when a rough start leaves
-    many negative values that later rounds would release again.
-    """
-    keep = active & (multipliers > -_ACTIVE_TOLERANCE * scale_b)
-    scale_x = float(np.max(np.abs(x))) or 1.0
-    candidates = ~active & (x < -_ACTIVE_TOLERANCE * scale_x)
-    limit = max(MIN_ADDED, int(active.sum()))
-    count = int(candidates.sum())
-    if count > limit:
-        values = np.where(candidates, x, 0.0).ravel()
-        chosen = np.argpartition(values, limit)[:limit]
-        candidates = np.zeros(x.size, bool)
-        candidates[chosen] = True
-        candidates = candidates.reshape(x.shape)
-    return keep | candidates

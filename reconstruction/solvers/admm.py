@@ -272,8 +272,8 @@ def solve(
     track_objective : bool
         Record the objective after each iteration in ``report.history`` (costly).
     exact_nonneg : bool
-        Finish a problem whose only split is non-negativity (L2-type priors) with the
-        primal–dual active-set method (:mod:`~reconstruction.solvers.active_set`), which
+        Finish a problem whose only split is non-negativity (L2-type priors) with a
+        projected-Newton active-set method (:mod:`~reconstruction.solvers.active_set`), which
         reaches the exact optimum; ADMM's residual test alone stops 1–10 % above it at
         the small weights the DMC picks. Costs several times the ADMM solve with Φ.
     """
