@@ -309,6 +309,7 @@ def build_formation(
     overhang_px: int = 0,
     step_px: float = 0.1,
     colour_gain: float = 1.0,
+    interpolation: str = "bilinear",
 ) -> ImageFormation:
     """A for one patch: colour matrices of `latent`, and Φ from `model` if given.
 
@@ -330,6 +331,8 @@ def build_formation(
         Largest shift between consecutive dispersion samples, px (§3.2.5: 0.1).
     colour_gain : float
         Factor on every colour matrix (the driver's normalisation, 1 / q_max).
+    interpolation : {"bilinear", "cubic"}
+        Sampling weights of Φ (:class:`~reconstruction.operators.Dispersion`).
     """
     if model is None:
         return ImageFormation(shape, cfa, colour_gain * latent.colour_matrices(None))
@@ -340,7 +343,13 @@ def build_formation(
                 "(`labkit calibrate dispersion --reference G`), not a spectral one"
             )
         phi = Dispersion(
-            model, None, origin=origin, shape=shape, overhang_px=overhang_px, boundary="periodic"
+            model,
+            None,
+            origin=origin,
+            shape=shape,
+            overhang_px=overhang_px,
+            boundary="periodic",
+            interpolation=interpolation,
         )
         selectors = np.zeros((3, 3, 3))
         for c in range(3):
@@ -361,6 +370,12 @@ def build_formation(
         overhang_px=overhang_px,
     )
     phi = Dispersion(
-        model, samples, origin=origin, shape=shape, overhang_px=overhang_px, boundary="periodic"
+        model,
+        samples,
+        origin=origin,
+        shape=shape,
+        overhang_px=overhang_px,
+        boundary="periodic",
+        interpolation=interpolation,
     )
     return ImageFormation(shape, cfa, colour_gain * latent.colour_matrices(samples), phi)

@@ -110,6 +110,7 @@ class SolverOptions:
     cg_rtol: float = 1e-5
     step_px: float = 0.1
     exact: bool = False
+    interpolation: str = "bilinear"
 
 
 def chunk_sizes(length: int, target: int) -> tuple[int, ...]:
@@ -220,6 +221,7 @@ def solve_patch(
         overhang_px=options.pad_px,
         step_px=solver.step_px,
         colour_gain=colour_gain,
+        interpolation=solver.interpolation,
     )
     problem = Problem(formation, raw, solver.terms, solver.weights, solver.nonneg)
     x0 = None

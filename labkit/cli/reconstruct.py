@@ -77,6 +77,14 @@ def register(commands: argparse._SubParsersAction) -> None:
         "without Φ and warp the result onto the reference band (either model direction)",
     )
     parser.add_argument(
+        "--interpolation",
+        default="bilinear",
+        metavar="bilinear|cubic",
+        help="sampling weights of Φ: bilinear (thesis §3.2.5, default) or Keys' cubic "
+        "convolution, which avoids bilinear's blur and the overshoot it causes at edges "
+        "(about 1.7× the run time)",
+    )
+    parser.add_argument(
         "--prior",
         default="L2",
         help="prior of thesis Table 3.1: L1, L2, Lap1, Lap2, L1L1, L2L2, L1SpatialLap2 or "
@@ -209,6 +217,7 @@ def _prepare(args: argparse.Namespace) -> _Job:
     correction = _choice(args.correction, "--correction", ("model", "warp"))
     if correction == "warp" and args.dispersion is None:
         raise ConfigError("--correction warp needs --dispersion MODEL.yaml to warp with")
+    interpolation = _choice(args.interpolation, "--interpolation", ("bilinear", "cubic"))
     scheduler = _scheduler(args.scheduler)
     rtol = None if args.rtol is None else _positive_float(args.rtol, "--rtol")
     patch_px = _even_int(args.patch_px, "--patch-px", 8)
@@ -293,6 +302,7 @@ def _prepare(args: argparse.Namespace) -> _Job:
         weights=args.weights,
         latent=latent,
         correction=correction,
+        interpolation=interpolation,
         exact=args.exact,
         patch_px=patch_px,
         pad_px=pad_px,
@@ -493,6 +503,7 @@ def _write_outputs(args: argparse.Namespace, job: _Job, result: Any) -> dict[str
         "response": job.response_source,
         "dispersion_model": None if args.dispersion is None else str(args.dispersion),
         "correction": args.correction,
+        "interpolation": args.interpolation,
         "latent": result.latent.kind,
         "prior": args.prior,
         "nonneg": args.nonneg,
