@@ -320,6 +320,11 @@ def bench_reconstruct(
         ("L2, 7 bands, Φ-free then warp (§3.9.2)", {"prior": "L2", "correction": "warp"}, 7),
         ("L2, 7 bands, exact (active-set finish)", {"prior": "L2", "exact": True}, 7),
         ("L2, 7 bands, cubic Φ", {"prior": "L2", "interpolation": "cubic"}, 7),
+        (
+            "VTV (w 0.02), 7 bands, cubic Φ",
+            {"prior": "VTV", "interpolation": "cubic", "weights": "fixed:0.02"},
+            7,
+        ),
         ("L2, 7 bands, patch 128", {"prior": "L2", "patch_px": 128, "pad_px": 16}, 7),
     ]
     variant_results: list[Measurement] = []

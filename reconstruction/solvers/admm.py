@@ -3,7 +3,8 @@
 Splitting (scaled form, one penalty ρ_t per split as in the thesis):
 
 * each L1 term ``w_j‖D_j I‖₁`` gets ``z_j = D_j I``, updated by soft-thresholding at
-  ``w_j / ρ_j`` (Algorithm 5, line 8);
+  ``w_j / ρ_j`` (Algorithm 5, line 8); a grouped term ``w_j‖D_j I‖₂,₁`` (``VTV``) by
+  group soft-thresholding, which shrinks each pixel's vector over bands and directions;
 * non-negativity gets ``z_0 = I``, updated by projection ``max(0, ·)`` (line 10);
 * L2 terms stay in the quadratic step (Algorithm 6, line 4).
 
@@ -32,6 +33,7 @@ import numpy as np
 
 from labkit.errors import DataError
 from reconstruction.operators import LinearOperator
+from reconstruction.prior_terms import GROUP_AXES
 from reconstruction.problem import Problem
 from reconstruction.solvers.active_set import PolishReport, polish
 from reconstruction.solvers.cg import conjugate_gradient
@@ -137,11 +139,15 @@ class _Split:
     u: np.ndarray
     z_next: np.ndarray | None = None
     u_next: np.ndarray | None = None
+    grouped: bool = False
 
     def prox(self, v: np.ndarray) -> np.ndarray:
         if self.threshold_weight is None:
             return np.maximum(v, 0.0)
         t = self.threshold_weight / self.rho
+        if self.grouped:
+            norm = np.sqrt(np.sum(v * v, axis=GROUP_AXES, keepdims=True))
+            return v * np.maximum(1.0 - t / np.maximum(norm, np.finfo(np.float64).tiny), 0.0)
         return np.sign(v) * np.maximum(np.abs(v) - t, 0.0)
 
 
@@ -291,7 +297,9 @@ def solve(
         if term.norm == 1 and weight > 0:
             d = problem.differences[j]
             gx = d.forward(x)
-            splits.append(_Split(term.label, d, weight, j, rho0, gx, np.zeros_like(gx)))
+            splits.append(
+                _Split(term.label, d, weight, j, rho0, gx, np.zeros_like(gx), grouped=term.grouped)
+            )
     if problem.nonneg:
         identity = _Identity(shape)
         splits.append(

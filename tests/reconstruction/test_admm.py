@@ -66,7 +66,7 @@ def test_l2_priors_reach_the_optimum(prior: str, nonneg: bool) -> None:
         assert solution.report.iterations == 1  # a single exact quadratic solve
 
 
-@pytest.mark.parametrize("prior", ["L1", "Lap1", "L1L1", "L1SpatialLap2"])
+@pytest.mark.parametrize("prior", ["L1", "Lap1", "L1L1", "L1SpatialLap2", "VTV"])
 @pytest.mark.parametrize("nonneg", [False, True])
 def test_l1_priors_approach_a_long_solve(prior: str, nonneg: bool) -> None:
     """L1 priors: the default solve is within 1e-2 of a much tighter, long solve.
@@ -80,6 +80,53 @@ def test_l1_priors_approach_a_long_solve(prior: str, nonneg: bool) -> None:
     gap = (solution.report.objective - reference.report.objective) / reference.report.objective
     assert -1e-6 < gap < 1e-2
     assert np.all(np.isfinite(solution.latent))
+
+
+def test_vectorial_tv_keeps_a_noisy_step_sharp() -> None:
+    """A vertical step between two spectra (grey | yellow) with 1 % noise, 32×32, w = 0.01:
+    the L2 prior interpolates the unsampled bands across the step (colour error 0.24 next
+    to it); VTV keeps it sharp like L1 (measured 0.015 and 0.006), in fewer ADMM
+    iterations than L1 (146 against 239)."""
+    rng = np.random.default_rng(5)
+    colour = normalised_colour()
+    a = ImageFormation(SHAPE, "GBRG", colour[None])
+    x = np.linspace(0.0, 1.0, colour.shape[1])
+    yellow = 0.05 + 0.9 / (1.0 + np.exp(-(x - 0.45) * 20.0))
+    truth = np.full((*SHAPE, x.size), 0.1)
+    truth[:, 16:] = yellow
+    raw = a.forward(truth)
+    raw = raw + 0.01 * raw.mean() * rng.standard_normal(raw.shape)
+    worst, iterations = {}, {}
+    for prior in ("L2", "L1", "VTV"):
+        solution = solve(Problem(a, raw, PRIORS[prior], (0.01,), True), rtol=1e-5, max_iter=5000)
+        error = np.abs(solution.latent @ colour.T - (truth @ colour.T))[4:-4]
+        worst[prior] = float(error[:, 14:18].max())
+        iterations[prior] = solution.report.iterations
+        assert np.all(np.isfinite(solution.latent))
+    assert worst["L2"] > 0.1
+    assert worst["VTV"] < 0.03 and worst["L1"] < 0.03
+    assert iterations["VTV"] < iterations["L1"]
+
+
+def test_grouped_term_value_and_prox() -> None:
+    """‖D I‖₂,₁ sums each pixel's 2-norm over bands and directions; its prox shrinks
+    every such vector by the threshold, and zeroes vectors shorter than it."""
+    term = PRIORS["VTV"][0]
+    d = np.zeros((2, 2, 2, 2))
+    d[0, 0] = [[3.0, 0.0], [0.0, 4.0]]  # norm 5
+    d[1, 1, 0, 1] = 0.5
+    assert term.label == "gradient_L21" and term.value(d) == pytest.approx(5.5)
+    p = problem("VTV", 1.0, False)
+    p_split = solve(p, max_iter=1)  # one iteration: just to build the split
+    assert p_split.report.splits == ["gradient_L21"]
+    from reconstruction.solvers.admm import _Split
+
+    split = _Split("g", None, 2.0, 0, 2.0, d, d, grouped=True)  # threshold 1
+    shrunk = split.prox(d)
+    np.testing.assert_allclose(shrunk[0, 0], d[0, 0] * (1 - 1 / 5))
+    assert not shrunk[1, 1].any()
+    with pytest.raises(DataError, match="only an L1 term can be grouped"):
+        type(term)("gradient", 2, grouped=True)
 
 
 def test_conjugate_gradients_with_dispersion_converge_quickly() -> None:

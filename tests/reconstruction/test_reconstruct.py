@@ -52,6 +52,8 @@ def grey_raw(shape=SHAPE, colour=(0.3, 0.5, 0.2)) -> np.ndarray:
         ({"response": None}, "camera response"),
         ({"correction": "sideways"}, "unknown correction"),
         ({"correction": "warp"}, "needs a dispersion model"),
+        ({"interpolation": "lanczos"}, "unknown interpolation"),
+        ({"prior": "VTV", "weights": "auto:dmc"}, "needs fixed weights.*fixed:0.02"),
     ],
 )
 def test_bad_input_is_refused_early(change: dict, message: str) -> None:
