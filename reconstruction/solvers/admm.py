@@ -209,7 +209,7 @@ class _QuadraticStep:
         return out
 
     def _precondition(self, r: np.ndarray) -> np.ndarray:
-        return self.solver.solve(r, refine=False)
+        return self.solver.solve_single(r)
 
     def solve(self, rhs: np.ndarray, x0: np.ndarray) -> np.ndarray:
         if self.exact:
