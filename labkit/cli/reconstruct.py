@@ -218,7 +218,9 @@ def _prepare(args: argparse.Namespace) -> _Job:
     correction = _choice(args.correction, "--correction", ("model", "warp"))
     if correction == "warp" and args.dispersion is None:
         raise ConfigError("--correction warp needs --dispersion MODEL.yaml to warp with")
-    interpolation = _choice(args.interpolation, "--interpolation", ("bilinear", "cubic"))
+    from reconstruction.operators.dispersion import INTERPOLATIONS
+
+    interpolation = _choice(args.interpolation, "--interpolation", INTERPOLATIONS)
     scheduler = _scheduler(args.scheduler)
     rtol = None if args.rtol is None else _positive_float(args.rtol, "--rtol")
     patch_px = _even_int(args.patch_px, "--patch-px", 8)
@@ -285,7 +287,7 @@ def _prepare(args: argparse.Namespace) -> _Job:
             "(thesis Table 3.1, and VTV)"
         )
     terms = prior_terms(args.prior, channels=channels)
-    _check_weights(args.weights, parse_weights, args.prior, len(terms))
+    _check_weights(args.weights, parse_weights, args.prior, terms)
     dispersion = None
     if args.dispersion is not None:
         from calibration.dispersion_model import load_dispersion_model
@@ -393,7 +395,8 @@ def _bands(text: str) -> list[float]:
     return values
 
 
-def _check_weights(text: str, parse_weights: Any, prior: str, terms: int) -> None:
+def _check_weights(text: str, parse_weights: Any, prior: str, terms: tuple) -> None:
+    count = len(terms)
     kind, _, rest = text.partition(":")
     if kind == "auto" and rest == "msec":
         raise ConfigError(
@@ -409,18 +412,18 @@ def _check_weights(text: str, parse_weights: Any, prior: str, terms: int) -> Non
             f"--weights {text!r}: use auto:dmc, auto:mdc or fixed:W[,W…] (one weight per "
             "prior term)"
         )
-    if kind == "fixed" and len(rest.split(",")) != terms:
+    if kind == "fixed" and len(rest.split(",")) != count:
         raise ConfigError(
-            f"--weights {text}: --prior {prior} has {terms} term(s), so give {terms} "
+            f"--weights {text}: --prior {prior} has {count} term(s), so give {count} "
             f"comma-separated weight(s)"
         )
     try:
-        parse_weights(text, terms)
+        parse_weights(text, count)
     except DataError as error:
         raise ConfigError(f"--weights: {error}") from None
-    if kind == "auto" and prior == "VTV":
+    if kind == "auto" and any(t.grouped for t in terms):  # the rule reconstruct() applies
         raise ConfigError(
-            f"--prior VTV needs fixed weights (--weights {text} picks weights near machine "
+            f"--prior {prior} needs fixed weights (--weights {text} picks weights near machine "
             "epsilon for it); on the simulated rig 0.01–0.05 gives the sharpest edges, e.g. "
             "--weights fixed:0.02"
         )

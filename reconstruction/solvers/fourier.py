@@ -158,13 +158,19 @@ class FourierSolver:
                 "give identity > 0 (e.g. a ridge of 1e-9 × the data term's scale)"
             )
         self.identity = identity
-        self._inverse32 = self._inverse.astype(np.complex64)
+        self._inverse32: np.ndarray | None = None  # made on the first solve_single
 
-    def _apply_quadruples(self, x: np.ndarray, inverse: bool, refine: bool = True) -> np.ndarray:
+    def _apply_quadruples(
+        self, x: np.ndarray, inverse: bool, refine: bool = True, blocks: np.ndarray | None = None
+    ) -> np.ndarray:
+        """K x or K⁻¹ x through the per-quadruple blocks; `blocks` replaces K⁻¹'s (no
+        refinement then), and x's precision carries through the FFTs."""
         rows, cols = self.shape
         n = self.channels
         spectrum = to_quadruples(scipy.fft.fft2(x, axes=(0, 1))).reshape(-1, 4 * n, 1)
-        if inverse:
+        if blocks is not None:
+            out = blocks @ spectrum
+        elif inverse:
             out = self._inverse @ spectrum
             if refine:  # one step of iterative refinement: the ridge alone can leave cond ≈ 1e9
                 out += self._inverse @ (spectrum - self._matrix @ out)
@@ -211,12 +217,12 @@ class FourierSolver:
         ``solve(b, refine=False)``. The ADMM step's CG (to 1e-5) uses it; the active-set
         finish, which needs CG to 1e-7, keeps float64.
         """
-        rows, cols = self.shape
-        n = self.channels
-        spectrum = to_quadruples(scipy.fft.fft2(np.asarray(b, dtype=np.float32), axes=(0, 1)))
-        out = self._inverse32 @ spectrum.reshape(-1, 4 * n, 1)
-        result = from_quadruples(out.reshape(-1, 4, n), (rows, cols))
-        return scipy.fft.ifft2(result, axes=(0, 1), overwrite_x=True).real.astype(np.float64)
+        if self._inverse32 is None:
+            self._inverse32 = self._inverse.astype(np.complex64)
+        single = self._apply_quadruples(
+            np.asarray(b, dtype=np.float32), inverse=True, blocks=self._inverse32
+        )
+        return single.astype(np.float64)
 
     def apply(self, x: np.ndarray) -> np.ndarray:
         """K x computed in the Fourier domain (for checks)."""
