@@ -33,6 +33,7 @@ from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
+import scipy.fft
 import scipy.sparse as sp
 
 from calibration.dispersion_model import DispersionModel
@@ -285,6 +286,26 @@ class ImageFormation(LinearOperator):
             [_translation_symbol(dx, dy, rows, cols) for dx, dy in self.mean_shifts_px]
         )  # (J, rows, cols)
         return np.einsum("jyx,jcn->yxcn", symbols, self.colour_matrices, optimize=True)
+
+    def translation_forward(self, x: np.ndarray) -> np.ndarray:
+        """Ãx: A with each Φ sample replaced by its mean translation (periodic), by FFT.
+
+        The operator whose normal matrix the FFT solver inverts with :meth:`fourier_colour`;
+        without Φ it is A itself.
+        """
+        if self.dispersion is None:
+            return self.forward(x)
+        spectrum = scipy.fft.fft2(x, axes=(0, 1))
+        colour = np.einsum("yxcn,yxn->yxc", self.fourier_colour(), spectrum, optimize=True)
+        return self.mosaic.forward(scipy.fft.ifft2(colour, axes=(0, 1)).real)
+
+    def translation_adjoint(self, y: np.ndarray) -> np.ndarray:
+        """Ãᵀy, the adjoint of :meth:`translation_forward`."""
+        if self.dispersion is None:
+            return self.adjoint(y)
+        spectrum = scipy.fft.fft2(self.mosaic.adjoint(y), axes=(0, 1))
+        latent = np.einsum("yxcn,yxc->yxn", self.fourier_colour().conj(), spectrum, optimize=True)
+        return scipy.fft.ifft2(latent, axes=(0, 1)).real
 
 
 def _translation_symbol(dx: float, dy: float, rows: int, cols: int) -> np.ndarray:

@@ -11,7 +11,7 @@ from labkit.errors import DataError
 from reconstruction.image_formation import ImageFormation, build_formation
 from reconstruction.prior_terms import PRIORS
 from reconstruction.problem import Problem
-from reconstruction.solvers.admm import solve
+from reconstruction.solvers.admm import initial_estimate, solve
 
 SHAPE = (32, 32)
 
@@ -141,6 +141,38 @@ def test_conjugate_gradients_with_dispersion_converge_quickly() -> None:
     assert solution.report.converged
     assert max(solution.report.cg_iterations) <= 10
     assert solution.report.cg_residual <= 1e-5
+
+
+def test_initial_estimate_is_the_quadratic_optimum_it_promises() -> None:
+    """Under a uniform periodic shift (up to 2.7 px), Ã = A: the start is the exact
+    unconstrained L2 optimum of the Φ problem (for an L1 prior, of its quadratic
+    stand-in), clipped at zero for a non-negative problem. ADMM from it (rtol 1e-6) ends
+    lower than from zeros, in far fewer iterations (measured 5.163 in 11 iterations
+    against 5.248 in 376)."""
+    from test_dispersion_operator import ConstantField
+    from test_image_formation import spectral_model
+
+    rng = np.random.default_rng(8)
+    model = spectral_model(ConstantField((0.7, -1.3), per_nm=True))
+    a = build_formation(latent_space(), (32, 32), "GBRG", model=model)
+    _, raw = noisy_raw(a, rng)
+    free = Problem(a, raw, PRIORS["L2"], (0.05,), False)
+    single = solve(free, cg_rtol=1e-10)
+    # regression: with the ridge alone in the identity, a float32 preconditioner left CG at
+    # a residual of 0.73 after 500 iterations; in float64 the exact one needs 1–2
+    assert single.report.cg_iterations[0] <= 3
+    exact = single.latent
+    start = initial_estimate(free)
+    assert np.linalg.norm(start - exact) < 1e-6 * np.linalg.norm(exact)
+    nonneg = Problem(a, raw, PRIORS["L2"], (0.05,), True)
+    np.testing.assert_array_equal(initial_estimate(nonneg), np.maximum(start, 0.0))
+    assert exact.min() < 0  # so the clipping is tested
+    l1 = Problem(a, raw, PRIORS["L1"], (0.05,), False)
+    np.testing.assert_allclose(initial_estimate(l1), start, rtol=1e-12, atol=1e-12)
+    warm = solve(nonneg, x0=initial_estimate(nonneg), rtol=1e-6)
+    cold = solve(nonneg, rtol=1e-6)
+    assert warm.report.objective < cold.report.objective
+    assert warm.report.iterations * 10 < cold.report.iterations
 
 
 def test_unconstrained_l2_solution_has_zero_gradient() -> None:

@@ -86,6 +86,35 @@ def test_fourier_solver_with_a_uniform_shift_is_exact() -> None:
     assert np.linalg.norm(solver.solve(kx) - x) / np.linalg.norm(x) < 1e-8
 
 
+def test_mean_translation_operator_is_what_the_fourier_solver_inverts() -> None:
+    """Ã (Φ as per-sample mean translations, by FFT): ⟨Ãx, y⟩ = ⟨x, Ãᵀy⟩ to 1e-10, the FFT
+    solver's matrix is 2ÃᵀÃ + βI, and for a uniform periodic shift Ã is A itself."""
+    rng = np.random.default_rng(7)
+    a = build_formation(
+        latent_space(), (24, 36), "GBRG", model=spectral_model(RadialField(0.05)), origin=(8, 10)
+    )
+    x = rng.standard_normal(a.domain_shape)
+    y = rng.standard_normal(a.range_shape)
+    forward, adjoint = a.translation_forward(x), a.translation_adjoint(y)
+    assert abs(np.vdot(forward, y) - np.vdot(x, adjoint)) < 1e-10 * abs(np.vdot(forward, y))
+    solver = FourierSolver((24, 36), "GBRG", a.fourier_colour(), identity=1e-2)
+    expected = 2 * a.translation_adjoint(forward) + 1e-2 * x
+    np.testing.assert_allclose(solver.apply(x), expected, atol=1e-10 * np.abs(expected).max())
+    assert np.linalg.norm(forward - a.forward(x)) > 0.01 * np.linalg.norm(forward)  # Φ varies
+
+    uniform = build_formation(
+        latent_space(),
+        (32, 32),
+        "GBRG",
+        model=spectral_model(ConstantField((0.7, -1.3), per_nm=True)),
+    )
+    x = rng.standard_normal(uniform.domain_shape)
+    np.testing.assert_allclose(uniform.translation_forward(x), uniform.forward(x), atol=1e-10)
+    plain = uniform.without_dispersion()
+    y = rng.standard_normal(plain.range_shape)
+    np.testing.assert_array_equal(plain.translation_adjoint(y), plain.adjoint(y))
+
+
 def test_fourier_solver_needs_even_sizes() -> None:
     with pytest.raises(DataError, match="even"):
         FourierSolver((31, 32), "RGGB", normalised_colour())
