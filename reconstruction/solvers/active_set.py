@@ -20,6 +20,14 @@ period, so every column of G̃ is a rolled copy of one of 4n impulse responses a
 (k × k) matrix ``G̃_SS`` of the k active values costs a gather and a Cholesky
 factorisation. Without Φ the preconditioner is the exact inverse and CG takes one or two
 steps; with Φ it is as good as the FFT preconditioner of the unconstrained step.
+
+Without Φ, :func:`solve_periodic` needs no ADMM start: K⁻¹ is exact by FFT, so it works in
+the dual. With ``x̂ = K⁻¹b`` and multipliers μ on a working set W of values held at zero,
+``x = x̂ + K⁻¹ E_W μ_W`` with ``G̃_WW μ_W = −x̂_W`` (a dense Cholesky solve; G̃_WW gathered
+from the impulse responses as above). A primal-dual active-set update keeps the values of
+W whose multiplier is positive and adds the most negative values of x outside it (at most
+:data:`ADD_BATCH` per round, so that W cannot balloon as a full primal-dual active-set
+step does); when W repeats, x ≥ 0, μ ≥ 0 and ``Kx − b = E_W μ`` are the KKT conditions.
 """
 
 from __future__ import annotations
@@ -56,6 +64,13 @@ ROUND_RTOL = 1e-4
 _ACTIVE_TOLERANCE = 1e-10
 """Values within this fraction of the largest value count as zero."""
 
+ADD_BATCH = 300
+"""Most values :func:`solve_periodic` adds to its working set per round."""
+
+MAX_PERIODIC_ROUNDS = 100
+"""Rounds of :func:`solve_periodic` before it gives up (measured: 5–45 on 64² and 128²
+patches at weights from 4e-8 to 0.03)."""
+
 
 @dataclass
 class PolishReport:
@@ -66,9 +81,10 @@ class PolishReport:
     status : str
         ``"optimal"`` (KKT residual ≤ :data:`KKT_TOLERANCE`), ``"rounds"``
         (:data:`MAX_ROUNDS` reached),
-        ``"stalled"`` (no decrease along the projected step) or ``"singular"``.
+        ``"stalled"`` (no decrease along the projected step) or ``"singular"``;
+        :func:`solve_periodic` adds ``"cycled"``, ``"large"`` and ``"inexact"``.
     rounds : int
-        Newton rounds (restricted solves).
+        Newton rounds (restricted solves), or working-set rounds of :func:`solve_periodic`.
     active : int
         Size of the final active set.
     cg_iterations : list of int
@@ -79,6 +95,28 @@ class PolishReport:
     rounds: int = 0
     active: int = 0
     cg_iterations: list[int] = field(default_factory=list)
+
+
+def inverse_block(
+    impulses: np.ndarray, index: tuple[np.ndarray, ...], shape: tuple[int, int]
+) -> np.ndarray:
+    """The (k × k) block of K̃⁻¹ at k values (``index`` = their rows, cols, bands).
+
+    `impulses` are :meth:`FourierSolver.impulse_responses`; the column of the value at
+    (r, c, j) is the impulse response of (r % 2, c % 2, j) rolled by the even part of (r, c).
+    """
+    rows, cols = shape
+    r, c, j = (v.astype(np.intp) for v in index)
+    p, q = r % 2, c % 2
+    block = impulses[
+        p[None, :],
+        q[None, :],
+        j[None, :],
+        (r[:, None] - r[None, :] + p[None, :]) % rows,
+        (c[:, None] - c[None, :] + q[None, :]) % cols,
+        j[:, None],
+    ]
+    return 0.5 * (block + block.T)
 
 
 class _Capacitance:
@@ -102,18 +140,7 @@ class _Capacitance:
         self.index = np.nonzero(pinned)
         self.factor = None
         if self.index[0].size:
-            rows, cols = active.shape[:2]
-            r, c, j = (v.astype(np.intp) for v in self.index)
-            p, q = r % 2, c % 2
-            block = impulses[
-                p[None, :],
-                q[None, :],
-                j[None, :],
-                (r[:, None] - r[None, :] + p[None, :]) % rows,
-                (c[:, None] - c[None, :] + q[None, :]) % cols,
-                j[:, None],
-            ]
-            block = 0.5 * (block + block.T)
+            block = inverse_block(impulses, self.index, active.shape[:2])
             self.factor = scipy.linalg.cho_factor(block, check_finite=False)
 
     def __call__(self, residual: np.ndarray) -> np.ndarray:
@@ -222,4 +249,93 @@ def polish(
             tolerance = max(0.1 * tolerance, 1e-12)
         previous = active
     report.status = "rounds"
+    return x, report
+
+
+def _most_negative(x: np.ndarray, candidates: np.ndarray, count: int) -> np.ndarray:
+    """The `count` most negative values of x among `candidates` (a boolean mask)."""
+    if int(candidates.sum()) <= count:
+        return candidates
+    flat = np.where(candidates, x, np.inf).ravel()
+    chosen = np.zeros(x.size, bool)
+    chosen[np.argpartition(flat, count)[:count]] = True
+    return chosen.reshape(x.shape)
+
+
+def solve_periodic(
+    problem: Problem, solver: FourierSolver, *, max_rounds: int = MAX_PERIODIC_ROUNDS
+) -> tuple[np.ndarray, PolishReport]:
+    """The exact non-negative optimum of a problem without Φ, by active sets in the dual.
+
+    Parameters
+    ----------
+    problem : Problem
+        Non-negative, L2-type priors only, no dispersion (K periodic).
+    solver : FourierSolver
+        K itself (its inverse is exact).
+    max_rounds : int
+        Working-set rounds allowed.
+
+    Returns
+    -------
+    x : ndarray
+        ``max(x̂ + K⁻¹E_W μ_W, 0)`` of the last round: the optimum when the report's status
+        is ``"optimal"``.
+    report : PolishReport
+        Status ``"optimal"`` (KKT residual ≤ :data:`KKT_TOLERANCE`, checked with K), ``"cycled"``
+        (a working set came back), ``"large"`` (it grew past :data:`MAX_ACTIVE`), ``"rounds"``
+        or ``"singular"``; on any of these the caller should fall back to ADMM and
+        :func:`polish`. ``cg_iterations`` stays empty.
+    """
+    report = PolishReport()
+    b = 2.0 * problem.formation.adjoint(problem.raw)
+    unconstrained = solver.solve(b)
+    tolerance = _ACTIVE_TOLERANCE * (float(np.abs(unconstrained).max()) or 1.0)
+    working = _most_negative(unconstrained, unconstrained < -tolerance, ADD_BATCH)
+    x = unconstrained
+    impulses = solver.impulse_responses() if working.any() else None
+    seen: set[bytes] = set()
+    report.status = "rounds"
+    for _ in range(max_rounds):
+        report.rounds += 1
+        report.active = int(working.sum())
+        if not working.any():
+            x = unconstrained
+            report.status = "settled"
+            break
+        if report.active > MAX_ACTIVE:
+            report.status = "large"
+            return np.maximum(x, 0.0), report
+        index = np.nonzero(working)
+        try:
+            factor = scipy.linalg.cho_factor(
+                inverse_block(impulses, index, problem.shape[:2]), check_finite=False
+            )
+        except (np.linalg.LinAlgError, ValueError):
+            report.status = "singular"
+            return np.maximum(x, 0.0), report
+        multipliers = np.zeros(problem.shape)
+        multipliers[index] = scipy.linalg.cho_solve(
+            factor, -unconstrained[index], check_finite=False
+        )
+        x = unconstrained + solver.solve(multipliers)
+        x[index] = 0.0  # zero by construction, up to round-off
+        violated = (x < -tolerance) & ~working
+        following = (multipliers > 0) | _most_negative(x, violated, ADD_BATCH)
+        if np.array_equal(following, working):
+            report.status = "settled"
+            break
+        key = np.packbits(following).tobytes()
+        if key in seen:
+            report.status = "cycled"
+            return np.maximum(x, 0.0), report
+        seen.add(key)
+        working = following
+    x = np.maximum(x, 0.0)
+    if report.status == "settled":
+        gradient = solver.apply(x) - b
+        violation = np.where(x > 0, np.abs(gradient), np.maximum(-gradient, 0.0))
+        scale_b = float(np.linalg.norm(b)) or 1.0
+        optimal = float(np.linalg.norm(violation)) <= KKT_TOLERANCE * scale_b
+        report.status = "optimal" if optimal else "inexact"
     return x, report
