@@ -49,6 +49,12 @@ and raw-colour outputs are float32 (largest finite 3.4e38, smallest normal 1.2e-
 CORRECTIONS = ("model", "warp")
 """How a dispersion model is undone: Φ inside the problem (3.1), or warping after (§3.9.2)."""
 
+LATENTS = ("spectral", "colour")
+"""What is estimated: the spectral image (3.1), or the colour image directly (3.27)."""
+
+REFERENCES = ("mean-colour",)
+"""Reference spectra of the §6.3 variant (None: the plain problem)."""
+
 REFERENCE_SMOOTHING = 1e-2
 """Weight w of (6.1)'s spectral-gradient penalty, relative to ‖C‖² (normalised units)."""
 
@@ -365,7 +371,7 @@ def reconstruct(
         )
     if criterion == "msec" and truth is None:
         raise DataError("weights='auto:msec' needs the true spectral image (truth=...)")
-    if reference not in (None, "mean-colour"):
+    if reference is not None and reference not in REFERENCES:
         raise DataError(f"unknown reference {reference!r}; use None or 'mean-colour' (§6.3)")
     if correction not in CORRECTIONS:
         raise DataError(

@@ -212,13 +212,14 @@ def _reconstruct(args: argparse.Namespace) -> int:
 def _prepare(args: argparse.Namespace) -> _Job:
     """Read and check every input and option; raises before anything is written."""
     from labkit.io import read_raw_exr
+    from reconstruction.operators.dispersion import INTERPOLATIONS
+    from reconstruction.reconstruct import CORRECTIONS, LATENTS, REFERENCES
 
-    latent = _choice(args.latent, "--latent", ("spectral", "colour"))
-    reference = _choice(args.reference, "--reference", ("mean-colour", "none"))
-    correction = _choice(args.correction, "--correction", ("model", "warp"))
+    latent = _choice(args.latent, "--latent", LATENTS)
+    reference = _choice(args.reference, "--reference", (*REFERENCES, "none"))
+    correction = _choice(args.correction, "--correction", CORRECTIONS)
     if correction == "warp" and args.dispersion is None:
         raise ConfigError("--correction warp needs --dispersion MODEL.yaml to warp with")
-    from reconstruction.operators.dispersion import INTERPOLATIONS
 
     interpolation = _choice(args.interpolation, "--interpolation", INTERPOLATIONS)
     scheduler = _scheduler(args.scheduler)
