@@ -321,7 +321,7 @@ def solve(
         (:mod:`~reconstruction.solvers.active_set`); ADMM's residual test alone stops
         1e-3–1e-2 above the optimum at the small weights the DMC picks. Without Φ, a
         dual active-set method replaces ADMM (``report.iterations`` = 0; on 128² patches
-        0.35–1.4 s against ADMM's 0.55 s, and 2–3× faster than ADMM plus the finish); if
+        0.35–1.5 s against ADMM's 0.55 s, and 2–9× faster than ADMM plus the finish); if
         it does not settle, and always with Φ, ADMM's result is finished by projected
         Newton, at several times the ADMM solve.
     """
