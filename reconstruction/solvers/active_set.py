@@ -241,8 +241,7 @@ def polish(
         clipped = bool(np.any(x + step * direction < 0))
         x, value = trial, trial_value
         gradient = apply(x) - b
-        violation = np.where(x > 0, np.abs(gradient), np.maximum(-gradient, 0.0))
-        if float(np.linalg.norm(violation)) <= KKT_TOLERANCE * scale_b and not clipped:
+        if _satisfies_kkt(x, gradient, scale_b) and not clipped:
             report.status = "optimal"
             return x, report
         if result.iterations == 0:  # the solve had nothing left at this tolerance
@@ -250,6 +249,13 @@ def polish(
         previous = active
     report.status = "rounds"
     return x, report
+
+
+def _satisfies_kkt(x: np.ndarray, gradient: np.ndarray, scale_b: float) -> bool:
+    """Whether x ≥ 0 with gradient ``Kx − b`` is optimal to :data:`KKT_TOLERANCE` · `scale_b`:
+    the gradient vanishes on positive values and pushes outwards on zeros."""
+    violation = np.where(x > 0, np.abs(gradient), np.maximum(-gradient, 0.0))
+    return float(np.linalg.norm(violation)) <= KKT_TOLERANCE * scale_b
 
 
 def _most_negative(x: np.ndarray, candidates: np.ndarray, count: int) -> np.ndarray:
@@ -293,33 +299,34 @@ def solve_periodic(
     tolerance = _ACTIVE_TOLERANCE * (float(np.abs(unconstrained).max()) or 1.0)
     working = _most_negative(unconstrained, unconstrained < -tolerance, ADD_BATCH)
     x = unconstrained
-    impulses = solver.impulse_responses() if working.any() else None
+    impulses = None
     seen: set[bytes] = set()
     report.status = "rounds"
     for _ in range(max_rounds):
         report.rounds += 1
         report.active = int(working.sum())
-        if not working.any():
-            x = unconstrained
-            report.status = "settled"
-            break
         if report.active > MAX_ACTIVE:
             report.status = "large"
             return np.maximum(x, 0.0), report
-        index = np.nonzero(working)
-        try:
-            factor = scipy.linalg.cho_factor(
-                inverse_block(impulses, index, problem.shape[:2]), check_finite=False
-            )
-        except (np.linalg.LinAlgError, ValueError):
-            report.status = "singular"
-            return np.maximum(x, 0.0), report
         multipliers = np.zeros(problem.shape)
-        multipliers[index] = scipy.linalg.cho_solve(
-            factor, -unconstrained[index], check_finite=False
-        )
-        x = unconstrained + solver.solve(multipliers)
-        x[index] = 0.0  # zero by construction, up to round-off
+        if report.active:
+            if impulses is None:
+                impulses = solver.impulse_responses()
+            index = np.nonzero(working)
+            try:
+                factor = scipy.linalg.cho_factor(
+                    inverse_block(impulses, index, problem.shape[:2]), check_finite=False
+                )
+            except (np.linalg.LinAlgError, ValueError):
+                report.status = "singular"
+                return np.maximum(x, 0.0), report
+            multipliers[index] = scipy.linalg.cho_solve(
+                factor, -unconstrained[index], check_finite=False
+            )
+            x = unconstrained + solver.solve(multipliers)
+            x[index] = 0.0  # zero by construction, up to round-off
+        else:
+            x = unconstrained
         violated = (x < -tolerance) & ~working
         following = (multipliers > 0) | _most_negative(x, violated, ADD_BATCH)
         if np.array_equal(following, working):
@@ -333,9 +340,6 @@ def solve_periodic(
         working = following
     x = np.maximum(x, 0.0)
     if report.status == "settled":
-        gradient = solver.apply(x) - b
-        violation = np.where(x > 0, np.abs(gradient), np.maximum(-gradient, 0.0))
-        scale_b = float(np.linalg.norm(b)) or 1.0
-        optimal = float(np.linalg.norm(violation)) <= KKT_TOLERANCE * scale_b
+        optimal = _satisfies_kkt(x, solver.apply(x) - b, float(np.linalg.norm(b)) or 1.0)
         report.status = "optimal" if optimal else "inexact"
     return x, report

@@ -348,16 +348,18 @@ def solve(
             _Split("nonneg", identity, None, None, rho0, np.maximum(x, 0), np.zeros(shape))
         )
 
+    report = SolveReport(splits=[s.name for s in splits])
+    # the exact solve needs K itself (no ADMM penalty): without Φ it may replace ADMM
+    exact = None
+    if exact_nonneg and problem.nonneg and len(splits) == 1:
+        exact = _QuadraticStep(problem, [], cg_rtol, cg_max_iter)
+        if exact.exact:
+            x_exact, report.polish = solve_periodic(problem, exact.solver)
+            if report.polish.status == "optimal":
+                report.converged = True
+                return _finish(problem, x_exact, report, exact)
     step = _QuadraticStep(problem, splits, cg_rtol, cg_max_iter)
     data_rhs = 2.0 * problem.formation.adjoint(problem.raw)
-    report = SolveReport(splits=[s.name for s in splits])
-    only_nonneg = problem.nonneg and len(splits) == 1
-    if exact_nonneg and only_nonneg and step.exact:
-        exact = _QuadraticStep(problem, [], cg_rtol, cg_max_iter)
-        x_exact, report.polish = solve_periodic(problem, exact.solver)
-        if report.polish.status == "optimal":
-            report.converged = True
-            return _finish(problem, x_exact, report, step)
     if not splits:
         x = step.solve(data_rhs, x)
         report.iterations, report.converged = 1, True
@@ -424,8 +426,7 @@ def solve(
                 step.refresh()
     report.penalties = [s.rho for s in splits]
     x = projected.copy() if problem.nonneg else x
-    if exact_nonneg and only_nonneg:
-        exact = _QuadraticStep(problem, [], cg_rtol, cg_max_iter)
+    if exact is not None:
         x, report.polish = polish(problem, x, exact.apply, exact.solver)
         report.converged = report.polish.status == "optimal" or report.converged
     return _finish(problem, x, report, step)
