@@ -48,7 +48,7 @@ from labkit.errors import DataError
 from reconstruction.image_formation import LatentSpace, build_formation
 from reconstruction.prior_terms import PriorTerm
 from reconstruction.problem import Problem
-from reconstruction.solvers.admm import initial_estimate, solve
+from reconstruction.solvers.admm import solve
 
 #: Meaning of the ``phi`` field of a patch record.
 PHI_STATES = {0: "no model", 1: "used", 2: "skipped: negligible", 3: "skipped: flat patch"}
@@ -116,6 +116,7 @@ class SolverOptions:
     step_px: float = 0.1
     exact: bool = False
     interpolation: str = "bilinear"
+    smoothness: float = 0.0
 
 
 def chunk_sizes(length: int, target: int) -> tuple[int, ...]:
@@ -228,12 +229,11 @@ def solve_patch(
         colour_gain=colour_gain,
         interpolation=solver.interpolation,
     )
-    problem = Problem(formation, raw, solver.terms, solver.weights, solver.nonneg)
-    needs_start = solver.nonneg or any(t.norm == 1 for t in solver.terms)
-    x0 = initial_estimate(problem) if needs_start else None
+    problem = Problem(
+        formation, raw, solver.terms, solver.weights, solver.nonneg, smoothness=solver.smoothness
+    )
     solution = solve(
         problem,
-        x0=x0,
         rtol=solver.rtol,
         atol=solver.atol,
         max_iter=solver.max_iter,

@@ -39,9 +39,15 @@ from typing import Literal
 import numpy as np
 
 from labkit.errors import DataError
-from reconstruction.operators import Gradient, Laplacian, LinearOperator, SpectralGradient
+from reconstruction.operators import (
+    Gradient,
+    Laplacian,
+    LinearOperator,
+    SpectralDifference,
+    SpectralGradient,
+)
 
-Difference = Literal["gradient", "spectral_gradient", "laplacian"]
+Difference = Literal["gradient", "spectral_gradient", "laplacian", "spectral"]
 
 
 @dataclass(frozen=True)
@@ -70,17 +76,21 @@ class PriorTerm:
             return Gradient(shape)
         if self.operator == "spectral_gradient":
             return SpectralGradient(shape)
+        if self.operator == "spectral":
+            return SpectralDifference(shape)
         return Laplacian(shape)
 
     def spatial_symbol(self, shape: tuple[int, int]) -> np.ndarray:
         """Real multiplier (rows, cols) of DᵀD per spatial frequency (the spectral part aside)."""
+        if self.operator == "spectral":
+            return np.ones(shape)
         # ∇ᵀ∇ and the Laplacian share one symbol; DᵀD of the Laplacian is its square
         laplacian = Laplacian((*shape, 1)).fourier_symbol()
         return laplacian**2 if self.operator == "laplacian" else laplacian
 
     def spectral_matrix(self, channels: int) -> np.ndarray:
         """The channel factor (channels × channels) of DᵀD: I, or D_λᵀD_λ for ∇λ∇xy."""
-        if self.operator != "spectral_gradient":
+        if self.operator not in ("spectral_gradient", "spectral"):
             return np.eye(channels)
         d = SpectralGradient((1, 1, channels)).spectral_matrix
         return d.T @ d

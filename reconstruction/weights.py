@@ -90,7 +90,10 @@ class _Evaluator:
             start = self._nearest(weights)
             out = []
             for i, p in enumerate(self.problems):
-                x0 = None if start is None else start[i]
+                # the first weight starts from zeros (Algorithm 3): from solve()'s default,
+                # the unconstrained optimum, ADMM at a tiny weight barely moves before its
+                # test stops it, and the criteria then favour weights near machine epsilon
+                x0 = np.zeros(p.shape) if start is None else start[i]
                 out.append(solve(p.with_weights(weights), x0=x0, **self.solve_options).latent)
                 self.solves += 1
             self._cache[weights] = out

@@ -321,6 +321,16 @@ def bench_reconstruct(
         ("L2, 7 bands, exact (active-set finish)", {"prior": "L2", "exact": True}, 7),
         ("L2, 7 bands, cubic Φ", {"prior": "L2", "interpolation": "cubic"}, 7),
         (
+            "L2, 7 bands, spectral smoothness 1e-3",
+            {"prior": "L2", "spectral_smoothness": 1e-3},
+            7,
+        ),
+        (
+            "L2, 7 bands, spectral smoothness 1e-3, exact",
+            {"prior": "L2", "spectral_smoothness": 1e-3, "exact": True},
+            7,
+        ),
+        (
             "VTV (w 0.02), 7 bands, cubic Φ",
             {"prior": "VTV", "interpolation": "cubic", "weights": "fixed:0.02"},
             7,

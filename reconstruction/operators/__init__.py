@@ -22,7 +22,12 @@ from reconstruction.operators.basis import BandSelection, SpectralBasis, choose_
 from reconstruction.operators.colour import SpectralToColour
 from reconstruction.operators.dispersion import Dispersion, dispersion_samples
 from reconstruction.operators.mosaic import Mosaic
-from reconstruction.operators.priors import Gradient, Laplacian, SpectralGradient
+from reconstruction.operators.priors import (
+    Gradient,
+    Laplacian,
+    SpectralDifference,
+    SpectralGradient,
+)
 
 __all__ = [
     "Adjoint",
@@ -35,6 +40,7 @@ __all__ = [
     "LinearOperator",
     "Mosaic",
     "SpectralBasis",
+    "SpectralDifference",
     "SpectralGradient",
     "SpectralToColour",
     "choose_bands",

@@ -201,6 +201,34 @@ class SpectralGradient(_SpatialDifference):
         return np.concatenate([zero, z], axis=2) - np.concatenate([z, zero], axis=2)
 
 
+class SpectralDifference(LinearOperator):
+    """Spectral difference ∇_λ alone: (rows, cols, k) → (rows, cols, k−1).
+
+    ``out[..., b] = u[..., b+1] − u[..., b]``: the roughness of each pixel's spectrum. Its
+    normal matrix is ``D_λᵀD_λ`` at every spatial frequency (spatial symbol 1).
+    """
+
+    name = "∇λ"
+
+    def __init__(self, shape: tuple[int, int, int]) -> None:
+        shape = _check_shape(shape, "SpectralDifference", min_channels=2)
+        rows, cols, k = shape
+        super().__init__(shape, (rows, cols, k - 1))
+
+    @property
+    def spectral_matrix(self) -> np.ndarray:
+        """D_λ as a (k−1, k) matrix: row b is ``e_{b+1} − e_b``."""
+        k = self.domain_shape[2]
+        return np.eye(k - 1, k, 1) - np.eye(k - 1, k)
+
+    def _forward(self, x: np.ndarray) -> np.ndarray:
+        return np.diff(x, axis=2)
+
+    def _adjoint(self, y: np.ndarray) -> np.ndarray:
+        zero = np.zeros_like(y[:, :, :1])
+        return np.concatenate([zero, y], axis=2) - np.concatenate([y, zero], axis=2)
+
+
 class Laplacian(_SpatialDifference):
     """Five-point spatial Laplacian ∇²_xy (3.20): (rows, cols, k) → (rows, cols, k).
 

@@ -42,7 +42,9 @@ from reconstruction.solvers.fourier import FourierSolver
 DEFAULT_RTOL = 1e-4
 """ε_rel. Objective above the optimum, measured: ≤ 1e-5 on 32² patches at w = 0.03; on
 128² patches at the DMC's weight (4.7e-4) with non-negativity, 5e-4–1e-3 from
-:func:`initial_estimate` and up to 4e-2 from zeros (``exact_nonneg`` gives the optimum)."""
+:func:`initial_estimate` and up to 4e-2 from zeros (``exact_nonneg`` gives the optimum);
+with the spectral smoothness term (σ = 1e-3, :mod:`reconstruction.problem`) 7e-9–5e-5 (L2,
+Lap2; L1: 2e-3)."""
 
 MAX_PENALTY_UPDATES = 8
 OVER_RELAXATION = 1.6
@@ -173,11 +175,7 @@ class _QuadraticStep:
     def _coefficients(self) -> tuple[list[tuple[float, int]], float]:
         """(coefficient, term index) of every DᵀD in the matrix, and the identity's coefficient."""
         p = self.problem
-        terms = [
-            (2.0 * w, j)
-            for j, (w, t) in enumerate(zip(p.weights, p.terms, strict=True))
-            if t.norm == 2 and w > 0
-        ]
+        terms = [(2.0 * w, j) for j, (w, t, _) in enumerate(p.penalties) if t.norm == 2 and w > 0]
         identity = 2.0 * p.ridge
         for s in self.splits:
             if s.term_index is None:
@@ -192,7 +190,7 @@ class _QuadraticStep:
             self.formation.range_shape,
             self.formation.cfa,
             self.formation.fourier_colour(),
-            terms=[(c, self.problem.terms[j]) for c, j in self.terms],
+            terms=[(c, self.problem.penalties[j][1]) for c, j in self.terms],
             identity=self.identity,
         )
 
@@ -210,7 +208,7 @@ class _QuadraticStep:
         a = self.formation
         out = 2.0 * a.adjoint(a.forward(x)) + self.identity * x
         for coefficient, j in self.terms:
-            d = self.problem.differences[j]
+            d = self.problem.penalties[j][2]
             out += coefficient * d.adjoint(d.forward(x))
         return out
 
@@ -266,11 +264,7 @@ def initial_estimate(problem: Problem) -> np.ndarray:
     iterations to 8, and the patch solves from 7.2 s to 4.7 s.
     """
     formation = problem.formation
-    quadratic = [
-        (2.0 * w, PriorTerm(t.operator, 2))
-        for w, t in zip(problem.weights, problem.terms, strict=True)
-        if w > 0
-    ]
+    quadratic = [(2.0 * w, PriorTerm(t.operator, 2)) for w, t, _ in problem.penalties if w > 0]
     solver = FourierSolver(
         formation.range_shape,
         formation.cfa,
@@ -308,8 +302,9 @@ def solve(
     max_iter : int
         ADMM iteration limit k_max.
     x0 : ndarray, optional
-        Starting image (default zeros, as the thesis); splits start at ``z = G x0``.
-        :func:`initial_estimate` is a better one with Φ (the patch driver uses it).
+        Starting image; splits start at ``z = G x0``. Default :func:`initial_estimate`
+        when ADMM runs (the thesis starts from zeros: pass ``np.zeros(shape)`` for that),
+        zeros for a single quadratic solve (CG's start with Φ).
     cg_rtol, cg_max_iter : float, int
         Tolerance and limit of each conjugate-gradient solve (with dispersion).
     penalty : float, optional
@@ -329,15 +324,30 @@ def solve(
     if not (0 < rtol < 1):
         raise DataError(f"rtol must be in (0, 1), got {rtol}")
     atol = absolute_tolerance(problem.raw, rtol) if atol is None else float(atol)
-    x = np.zeros(shape) if x0 is None else np.array(x0, dtype=np.float64)
-    if x.shape != shape:
-        raise DataError(f"x0 has shape {x.shape}, the problem's latent image {shape}")
+    if x0 is not None and np.shape(x0) != shape:
+        raise DataError(f"x0 has shape {np.shape(x0)}, the problem's latent image {shape}")
+    split_terms = [t.norm == 1 and w > 0 for w, t, _ in problem.penalties]
+    report = SolveReport()
+    # the exact solve needs K itself (no ADMM penalty): without Φ it may replace ADMM
+    exact = None
+    if exact_nonneg and problem.nonneg and not any(split_terms):
+        exact = _QuadraticStep(problem, [], cg_rtol, cg_max_iter)
+        if exact.exact:
+            x_exact, report.polish = solve_periodic(problem, exact.solver)
+            if report.polish.status == "optimal":
+                report.converged, report.splits = True, ["nonneg"]
+                return _finish(problem, x_exact, report, exact)
+    if x0 is not None:
+        x = np.array(x0, dtype=np.float64)
+    elif problem.nonneg or any(split_terms):
+        x = initial_estimate(problem)
+    else:
+        x = np.zeros(shape)
     rho0 = float(penalty) if penalty is not None else data_curvature(problem)
 
     splits: list[_Split] = []
-    for j, (term, weight) in enumerate(zip(problem.terms, problem.weights, strict=True)):
+    for j, (weight, term, d) in enumerate(problem.penalties):
         if term.norm == 1 and weight > 0:
-            d = problem.differences[j]
             gx = d.forward(x)
             splits.append(
                 _Split(term.label, d, weight, j, rho0, gx, np.zeros_like(gx), grouped=term.grouped)
@@ -348,16 +358,7 @@ def solve(
             _Split("nonneg", identity, None, None, rho0, np.maximum(x, 0), np.zeros(shape))
         )
 
-    report = SolveReport(splits=[s.name for s in splits])
-    # the exact solve needs K itself (no ADMM penalty): without Φ it may replace ADMM
-    exact = None
-    if exact_nonneg and problem.nonneg and len(splits) == 1:
-        exact = _QuadraticStep(problem, [], cg_rtol, cg_max_iter)
-        if exact.exact:
-            x_exact, report.polish = solve_periodic(problem, exact.solver)
-            if report.polish.status == "optimal":
-                report.converged = True
-                return _finish(problem, x_exact, report, exact)
+    report.splits = [s.name for s in splits]
     step = _QuadraticStep(problem, splits, cg_rtol, cg_max_iter)
     data_rhs = 2.0 * problem.formation.adjoint(problem.raw)
     if not splits:

@@ -125,6 +125,7 @@ def test_smooth_scene_known_answer(inputs, tmp_path: Path, capsys) -> None:
     assert log["bands_nm"] == [400, 450, 500, 550, 600, 650, 700]
     assert log["patches"]["count"] == len(log["patch_records"]) == 6
     assert log["options"]["patch_px"] == 32 and log["options"]["nonneg"] is False
+    assert log["spectral_smoothness"] == 0.0  # off by default, as the thesis
 
     with Image.open(out / "preview.png") as preview:
         assert preview.size == (SHAPE[1], SHAPE[0]) and preview.mode == "RGB"
@@ -269,7 +270,7 @@ def test_help_documents_every_option(capsys) -> None:
     for option in ("--rig", "--response", "--bands", "--dispersion", "--prior", "--nonneg",
                    "--no-nonneg", "--weights", "--latent", "--reference", "--rtol", "--patch-px",
                    "--pad-px", "--scheduler", "--out", "--quiet", "--correction",
-                   "--exact"):  # fmt: skip
+                   "--exact", "--spectral-smoothness"):  # fmt: skip
         assert option in text
     for prior in PRIORS:
         assert prior in text, f"prior {prior} is missing from the --prior help"
@@ -310,6 +311,9 @@ def test_help_documents_every_option(capsys) -> None:
         ("grey", ["--response", "R", "--latent", "colour", "--bands", BANDS], "no --bands"),
         ("grey", ["--response", "R", "--patch-px", "30.5"], "--patch-px is '30.5'"),
         ("grey", ["--response", "R", "--scheduler", "mpi"], "--scheduler is 'mpi'"),
+        ("grey", ["--response", "R", "--spectral-smoothness", "-1"], "expected a number ≥ 0"),
+        ("grey", ["--response", "R", "--latent", "colour", "--spectral-smoothness", "1e-3"],
+         "--spectral-smoothness applies to --latent spectral"),
     ],
 )  # fmt: skip
 def test_bad_input_is_one_line_and_writes_nothing(

@@ -11,7 +11,12 @@ from labkit.spectra import Spectra
 from reconstruction.operators import dot_test
 from reconstruction.operators.colour import SpectralToColour
 from reconstruction.operators.mosaic import Mosaic
-from reconstruction.operators.priors import Gradient, Laplacian, SpectralGradient
+from reconstruction.operators.priors import (
+    Gradient,
+    Laplacian,
+    SpectralDifference,
+    SpectralGradient,
+)
 
 SHAPE = (5, 7)  # odd on purpose: the Bayer tiling is cropped
 BANDS = 6
@@ -32,6 +37,7 @@ ALL_OPERATORS = (
     [Mosaic(SHAPE, cfa) for cfa in CFA_LAYOUTS]
     + _operators("periodic")
     + _operators("neumann")
+    + [SpectralDifference((*SHAPE, BANDS))]
     + [
         Mosaic(SHAPE, cfa) @ SpectralToColour(SHAPE, np.arange(3 * BANDS).reshape(3, BANDS))
         for cfa in CFA_LAYOUTS
@@ -206,6 +212,25 @@ def test_spectral_gradient_known_answers(rng):
     np.testing.assert_allclose(out, np.repeat(grad_f, k - 1, axis=2), atol=1e-12)
     d = SpectralGradient((rows, cols, k)).spectral_matrix
     np.testing.assert_array_equal(d @ np.arange(k), np.ones(k - 1))
+
+
+def test_spectral_difference_known_answers(rng):
+    rows, cols, k = 3, 4, 5
+    op = SpectralDifference((rows, cols, k))
+    f = rng.standard_normal((rows, cols))
+    assert op.range_shape == (rows, cols, k - 1)
+    np.testing.assert_array_equal(op.forward(np.repeat(f[..., None], k, axis=2)), 0.0)
+    ramp = f[..., None] * np.arange(k)  # slope f per band
+    np.testing.assert_allclose(op.forward(ramp), np.repeat(f[..., None], k - 1, axis=2))
+    # DᵀD is the path-graph Laplacian along λ: [1, −1, …], [−1, 2, −1], …, [… −1, 1]
+    d = op.spectral_matrix
+    expected = 2 * np.eye(k) - np.eye(k, k, 1) - np.eye(k, k, -1)
+    expected[0, 0] = expected[-1, -1] = 1
+    np.testing.assert_array_equal(d.T @ d, expected)
+    u = rng.standard_normal((rows, cols, k))
+    np.testing.assert_allclose(op.adjoint(op.forward(u)), u @ expected, atol=1e-12)
+    with pytest.raises(DataError, match="channels ≥ 2"):
+        SpectralDifference((rows, cols, 1))
 
 
 def test_difference_operators_reject_bad_input():

@@ -54,6 +54,8 @@ def grey_raw(shape=SHAPE, colour=(0.3, 0.5, 0.2)) -> np.ndarray:
         ({"correction": "warp"}, "needs a dispersion model"),
         ({"interpolation": "lanczos"}, "unknown interpolation"),
         ({"prior": "VTV", "weights": "auto:dmc"}, "needs fixed weights.*fixed:0.02"),
+        ({"spectral_smoothness": -1e-3}, "spectral_smoothness must be finite and ≥ 0"),
+        ({"latent": "colour", "spectral_smoothness": 1e-3}, "applies to spectral latent"),
     ],
 )
 def test_bad_input_is_refused_early(change: dict, message: str) -> None:
@@ -85,6 +87,37 @@ def test_flat_scene_is_reproduced_and_skipped() -> None:
     assert summary["count"] == 6
     assert summary["phi_skipped_flat"] == 6
     assert all(r["iterations"] <= 3 for r in result.log["patch_records"])
+
+
+def test_spectral_smoothness_recovers_smooth_spectra_better() -> None:
+    """Blobs of smooth spectra (Gaussian across bands, σ = 1.5 bands), 0.5 % noise, L2 at
+    w = 0.003, non-negativity: with spectral_smoothness = 1e-3 the spectral error falls by
+    more than half (measured 0.270 → 0.120) and the raw colour stays as close to the
+    noise-free data (0.62 % → 0.65 %, the noise is 0.5 %)."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(11)
+    space = LatentSpace.spectral(RESPONSE_RGB)
+    formation = build_formation(space, (64, 64), "GBRG")
+    truth = ndimage.gaussian_filter1d(
+        blobs((64, 64), space.channels, rng), 1.5, axis=2, mode="nearest"
+    )
+    clean = formation.forward(truth)
+    raw = clean + 0.005 * clean.mean() * rng.standard_normal(clean.shape)
+    settings = {"cfa": "GBRG", "response": RESPONSE_RGB, "weights": "fixed:0.003"}
+    results = {s: reconstruct(raw, spectral_smoothness=s, **settings) for s in (0.0, 1e-3)}
+    expected = space.spectral_values(truth)  # the spectrum at the band centres
+    errors = {
+        s: np.linalg.norm(r.spectral - expected) / np.linalg.norm(expected)
+        for s, r in results.items()
+    }
+    assert results[1e-3].log["spectral_smoothness"] == 1e-3
+    assert errors[1e-3] < 0.6 * errors[0.0]
+    misfit = {
+        s: np.linalg.norm(mosaic(r.raw_colour, "GBRG") - clean) / np.linalg.norm(clean)
+        for s, r in results.items()
+    }
+    assert misfit[1e-3] < 0.01 and misfit[0.0] < 0.01
 
 
 def test_noisy_flat_scene_is_still_taken_as_flat() -> None:
