@@ -47,6 +47,8 @@ from reconstruction.operators import (
     SpectralGradient,
 )
 
+#: "spectral" (∇λ alone) is no prior of Table 3.1: it is the operator of the spectral
+#: smoothness term of :mod:`reconstruction.problem`.
 Difference = Literal["gradient", "spectral_gradient", "laplacian", "spectral"]
 
 

@@ -258,10 +258,11 @@ def initial_estimate(problem: Problem) -> np.ndarray:
     ``(2ÃᵀÃ + Σ_j 2w_j D_jᵀD_j + 2εI) x = 2Ãᵀy`` where Ã is A with each Φ sample replaced
     by its mean translation over the patch (A itself without Φ), in the matrix and the
     right-hand side alike: were they to disagree, the directions only the ridge ε holds
-    would amplify the mismatch. Clipped at zero for a non-negative problem. The patch
-    driver starts every patch here; on the simulated ColorChecker (344×408, 7 bands, Φ)
-    that takes ADMM's median iterations from 30 to 10.5, the largest CG solve from 11
-    iterations to 8, and the patch solves from 7.2 s to 4.7 s.
+    would amplify the mismatch. Clipped at zero for a non-negative problem. ADMM
+    starts here unless given x0 (the thesis starts from zeros); on the simulated
+    ColorChecker (344×408, 7 bands, Φ) that takes ADMM's median iterations from 30 to
+    10.5, the largest CG solve from 11 iterations to 8, and the patch solves from 7.2 s to
+    4.7 s.
     """
     formation = problem.formation
     quadratic = [(2.0 * w, PriorTerm(t.operator, 2)) for w, t, _ in problem.penalties if w > 0]
