@@ -235,7 +235,7 @@ def _prepare(args: argparse.Namespace) -> _Job:
     rtol = None if args.rtol is None else _positive_float(args.rtol, "--rtol")
     smoothness = None
     if args.spectral_smoothness is not None:
-        smoothness = _non_negative_float(args.spectral_smoothness, "--spectral-smoothness")
+        smoothness = _positive_float(args.spectral_smoothness, "--spectral-smoothness", zero=True)
     patch_px = _even_int(args.patch_px, "--patch-px", 8)
     pad_px = None if args.pad_px is None else _even_int(args.pad_px, "--pad-px", 2)
     _check_out(args.out)
@@ -377,23 +377,15 @@ def _unreachable(scheduler: str, error: OSError) -> str:
     )
 
 
-def _positive_float(text: str, option: str) -> float:
+def _positive_float(text: str, option: str, *, zero: bool = False) -> float:
+    """A finite number > 0 (≥ 0 with `zero`) from an option's text, or a ConfigError."""
     try:
         value = float(text)
     except ValueError:
         value = math.nan
-    if not math.isfinite(value) or value <= 0:
-        raise ConfigError(f"{option} is {text!r}; expected a positive number such as 1e-4")
-    return value
-
-
-def _non_negative_float(text: str, option: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not math.isfinite(value) or value < 0:
-        raise ConfigError(f"{option} is {text!r}; expected a number ≥ 0 such as 1e-3")
+    if not math.isfinite(value) or value < 0 or (value == 0 and not zero):
+        expected = "a number ≥ 0 such as 1e-3" if zero else "a positive number such as 1e-4"
+        raise ConfigError(f"{option} is {text!r}; expected {expected}")
     return value
 
 

@@ -327,11 +327,11 @@ def solve(
     atol = absolute_tolerance(problem.raw, rtol) if atol is None else float(atol)
     if x0 is not None and np.shape(x0) != shape:
         raise DataError(f"x0 has shape {np.shape(x0)}, the problem's latent image {shape}")
-    split_terms = [t.norm == 1 and w > 0 for w, t, _ in problem.penalties]
+    l1_splits = any(t.norm == 1 and w > 0 for w, t, _ in problem.penalties)
     report = SolveReport()
     # the exact solve needs K itself (no ADMM penalty): without Φ it may replace ADMM
     exact = None
-    if exact_nonneg and problem.nonneg and not any(split_terms):
+    if exact_nonneg and problem.nonneg and not l1_splits:
         exact = _QuadraticStep(problem, [], cg_rtol, cg_max_iter)
         if exact.exact:
             x_exact, report.polish = solve_periodic(problem, exact.solver)
@@ -340,7 +340,7 @@ def solve(
                 return _finish(problem, x_exact, report, exact)
     if x0 is not None:
         x = np.array(x0, dtype=np.float64)
-    elif problem.nonneg or any(split_terms):
+    elif problem.nonneg or l1_splits:
         x = initial_estimate(problem)
     else:
         x = np.zeros(shape)

@@ -31,6 +31,11 @@ def blobs(shape: tuple[int, int], n: int, rng: np.random.Generator, count: int =
     return ndimage.gaussian_filter(truth, (0.7, 0.7, 0)) + 0.05
 
 
+def smooth_blobs(shape: tuple[int, int], n: int, rng: np.random.Generator) -> np.ndarray:
+    """:func:`blobs` whose spectra are smooth across the bands (Gaussian, σ = 1.5 bands)."""
+    return ndimage.gaussian_filter1d(blobs(shape, n, rng), 1.5, axis=2, mode="nearest")
+
+
 def noisy_raw(
     formation: ImageFormation, rng: np.random.Generator, noise: float = 0.01
 ) -> tuple[np.ndarray, np.ndarray]:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from _problems import blobs, latent_space, noisy_raw, normalised_colour, rig_lens_model
+from _problems import latent_space, noisy_raw, normalised_colour, rig_lens_model, smooth_blobs
 from scipy.optimize import minimize
 
 from labkit.errors import DataError
@@ -333,13 +333,9 @@ def smooth_spectra_raw(
 ) -> tuple[ImageFormation, np.ndarray, np.ndarray]:
     """(A, truth, raw): blobs whose spectra are smooth across the bands (Gaussian, σ = 1.5
     bands), 0.5 % noise."""
-    from scipy import ndimage
-
     rng = np.random.default_rng(seed)
     a = ImageFormation(shape, "GBRG", normalised_colour()[None])
-    truth = ndimage.gaussian_filter1d(
-        blobs(shape, a.domain_shape[2], rng), 1.5, axis=2, mode="nearest"
-    )
+    truth = smooth_blobs(shape, a.domain_shape[2], rng)
     raw = a.forward(truth)
     return a, truth, raw + 0.005 * raw.mean() * rng.standard_normal(raw.shape)
 
