@@ -48,6 +48,7 @@ from reconstruction.operators import (
     dispersion_samples,
 )
 from reconstruction.operators.basis import choose_bands
+from reconstruction.operators.dispersion import keys_kernel
 
 
 @dataclass(frozen=True, eq=False)
@@ -276,14 +277,18 @@ class ImageFormation(LinearOperator):
         """Colour matrix per spatial frequency for the FFT solver.
 
         Without Φ: the constant (3, n) matrix. With Φ: (rows, cols, 3, n) complex,
-        ``Σ_j φ_j(k) C_j`` where φ_j is the DFT symbol of a bilinear translation by sample
-        j's mean displacement — exact when Φ_j is that translation (with wrap-around).
+        ``Σ_j φ_j(k) C_j`` where φ_j is the DFT symbol of a translation by sample j's mean
+        displacement, interpolated as Φ interpolates (bilinear or cubic) — exact when Φ_j
+        is that translation (with wrap-around).
         """
         if self.mean_shifts_px is None:
             return self.colour_matrices[0]
         rows, cols = self.range_shape
         symbols = np.stack(
-            [_translation_symbol(dx, dy, rows, cols) for dx, dy in self.mean_shifts_px]
+            [
+                _translation_symbol(dx, dy, rows, cols, self.dispersion.interpolation)
+                for dx, dy in self.mean_shifts_px
+            ]
         )  # (J, rows, cols)
         return np.einsum("jyx,jcn->yxcn", symbols, self.colour_matrices, optimize=True)
 
@@ -308,14 +313,22 @@ class ImageFormation(LinearOperator):
         return scipy.fft.ifft2(latent, axes=(0, 1)).real
 
 
-def _translation_symbol(dx: float, dy: float, rows: int, cols: int) -> np.ndarray:
-    """DFT multiplier of ``out(q) = bilinear sample of x at q + (dx, dy)`` (periodic)."""
+def _translation_symbol(
+    dx: float, dy: float, rows: int, cols: int, interpolation: str = "bilinear"
+) -> np.ndarray:
+    """DFT multiplier of ``out(q) = x sampled at q + (dx, dy)`` (periodic) with the weights
+    of `interpolation` (bilinear, or Keys' cubic convolution), as Φ samples."""
 
     def axis(shift: float, n: int) -> np.ndarray:
         whole = np.floor(shift)
         frac = shift - whole
+        if interpolation == "cubic":
+            offsets = np.arange(-1.0, 3.0)
+            weights = keys_kernel(frac - offsets)
+        else:
+            offsets, weights = np.array([0.0, 1.0]), np.array([1.0 - frac, frac])
         phase = np.exp(2j * np.pi * np.arange(n) / n)
-        return (1 - frac) * phase**whole + frac * phase ** (whole + 1)
+        return sum(w * phase ** (whole + o) for o, w in zip(offsets, weights, strict=True))
 
     return axis(dy, rows)[:, None] * axis(dx, cols)[None, :]
 

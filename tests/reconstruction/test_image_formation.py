@@ -115,6 +115,14 @@ def test_mean_translation_operator_is_what_the_fourier_solver_inverts() -> None:
     )
     x = rng.standard_normal(uniform.domain_shape)
     np.testing.assert_allclose(uniform.translation_forward(x), uniform.forward(x), atol=1e-10)
+    cubic = build_formation(
+        latent_space(),
+        (32, 32),
+        "GBRG",
+        model=spectral_model(ConstantField((0.7, -1.3), per_nm=True)),
+        interpolation="cubic",
+    )  # the symbol follows Φ's interpolation: Keys' weights, not bilinear ones
+    np.testing.assert_allclose(cubic.translation_forward(x), cubic.forward(x), atol=1e-10)
     plain = uniform.without_dispersion()
     y = rng.standard_normal(plain.range_shape)
     np.testing.assert_array_equal(plain.translation_adjoint(y), plain.adjoint(y))
