@@ -244,26 +244,10 @@ def _vignetting(args: argparse.Namespace) -> int:
 
 def read_mask(path: Path):
     """A boolean mask from a PNG/TIFF/.npy file (non-zero = True)."""
-    import numpy as np
-
     from labkit.errors import DataError
+    from labkit.io.plane import read_plane
 
-    if not path.is_file():
-        raise DataError(f"mask {path} does not exist")
-    try:
-        if path.suffix.lower() == ".npy":
-            data = np.load(path)
-        elif path.suffix.lower() in (".tif", ".tiff"):
-            import tifffile
-
-            data = tifffile.imread(path)
-        else:
-            import matplotlib.image
-
-            data = matplotlib.image.imread(path)
-    except Exception as error:
-        raise DataError(f"cannot read mask {path}: {error}") from None
-    data = np.asarray(data)
+    data = read_plane(path, what="mask")
     if data.ndim == 3:
         data = data[..., :3].max(axis=2)
     if data.ndim != 2:

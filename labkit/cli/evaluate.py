@@ -155,16 +155,9 @@ def _read_labels(path: Path, shape: tuple[int, int]):
     import numpy as np
 
     from labkit.errors import DataError
+    from labkit.io.plane import read_plane
 
-    if path.suffix.lower() == ".npy":
-        labels = np.load(path)
-    else:
-        from PIL import Image
-
-        try:
-            labels = np.asarray(Image.open(path))
-        except OSError as error:
-            raise DataError(f"--labels {path}: not a readable image ({error})") from None
+    labels = read_plane(path, what="--labels")
     if labels.ndim != 2 or labels.shape != tuple(shape):
         raise DataError(
             f"--labels {path}: expected a single-channel {shape[1]}×{shape[0]} label image, "

@@ -1,4 +1,4 @@
-"""Files: atomic writes, raw TIFF frames, OpenEXR raw/spectral images, PNG previews."""
+"""Files: atomic writes, raw TIFF frames, OpenEXR raw/spectral images, PNG previews, masks."""
 
 from labkit.io.atomic import atomic_path, atomic_write, fsync_directory, write_text_atomic
 from labkit.io.exr import (
@@ -13,6 +13,7 @@ from labkit.io.exr import (
     write_spectral_exr,
 )
 from labkit.io.plain import to_plain
+from labkit.io.plane import read_plane
 from labkit.io.preview import (
     demosaic_bilinear,
     display_on_one_scale,
@@ -34,6 +35,7 @@ __all__ = [
     "encode_raw_tiff",
     "fsync_directory",
     "raw_preview",
+    "read_plane",
     "read_raw_exr",
     "read_raw_tiff",
     "read_rgb_exr",

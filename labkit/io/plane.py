@@ -1,0 +1,42 @@
+"""Single images given on the command line: masks and label images (PNG, TIFF, ``.npy``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from labkit.errors import DataError
+
+
+def read_plane(path: str | Path, *, what: str = "image") -> np.ndarray:
+    """The pixel array of a ``.npy``, TIFF or PIL-readable (PNG, …) file, as stored.
+
+    Parameters
+    ----------
+    path : str or Path
+    what : str
+        How error messages name the file (e.g. ``"mask"``, ``"--labels"``).
+
+    Raises
+    ------
+    DataError
+        The file does not exist or cannot be read as an image.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{what} {path} does not exist")
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".npy":
+            return np.load(path)
+        if suffix in (".tif", ".tiff"):
+            import tifffile
+
+            return tifffile.imread(path)
+        from PIL import Image
+
+        with Image.open(path) as image:
+            return np.asarray(image)
+    except Exception as error:
+        raise DataError(f"{what} {path}: not a readable image ({error})") from None
