@@ -27,8 +27,10 @@ band, an edge costs once however many bands it crosses, so spectra keep their sh
 Measured on the simulated rig's ColorChecker (344×408, 7 bands, cubic Φ, w = 0.02):
 green edge error 0.0074 (Menon demosaicing 0.0101, L2 at the DMC weight 0.0207), spectral
 RMSE 0.077 (L1 at w = 0.01: 0.37), in a quarter of L1's time (bilinear Φ, w = 0.01: 15 s
-against 63 s). The automatic weight criteria do not suit it (see
-:func:`reconstruction.reconstruct`): give its weight.
+against 63 s). Automatic weights (:mod:`reconstruction.weights`, each weight's solve
+from its own initial estimate): the MSE criterion on the textured scene picks 0.0145,
+which on the ColorChecker gives green edge error 0.0083; the DMC on the ColorChecker
+picks 1.5e-3 (spectral RMSE 0.0785, green edge error 0.0138).
 """
 
 from __future__ import annotations

@@ -379,13 +379,6 @@ def reconstruct(
             "L2-type prior"
         )
     criterion, fixed = parse_weights(weights, len(terms))
-    if fixed is None and any(t.grouped for t in terms):
-        raise DataError(
-            f"prior {prior!r} needs fixed weights: the automatic criteria pick weights near "
-            "machine epsilon for it (ADMM barely moves at such weights, so they look as good "
-            "as any); on the simulated rig 0.01–0.05 gives the sharpest edges, e.g. "
-            "weights='fixed:0.02' (--weights fixed:0.02)"
-        )
     if criterion == "msec" and truth is None:
         raise DataError("weights='auto:msec' needs the true spectral image (truth=...)")
     if reference is not None and reference not in REFERENCES:

@@ -89,7 +89,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         default="L2",
         help="prior of thesis Table 3.1: L1, L2, Lap1, Lap2, L1L1, L2L2, L1SpatialLap2 or "
         "L1SpectralLap2 (default L2); or VTV, vectorial total variation (edges shared by all "
-        "bands; sharpest edges, choose its weight with fixed:…)",
+        "bands; sharpest edges)",
     )
     parser.add_argument(
         "--nonneg",
@@ -443,12 +443,6 @@ def _check_weights(text: str, parse_weights: Any, prior: str, terms: tuple) -> N
         parse_weights(text, count)
     except DataError as error:
         raise ConfigError(f"--weights: {error}") from None
-    if kind == "auto" and any(t.grouped for t in terms):  # the rule reconstruct() applies
-        raise ConfigError(
-            f"--prior {prior} needs fixed weights (--weights {text} picks weights near machine "
-            "epsilon for it); on the simulated rig 0.01–0.05 gives the sharpest edges, e.g. "
-            "--weights fixed:0.02"
-        )
 
 
 def _check_out(out: Path) -> None:

@@ -305,7 +305,6 @@ def test_help_documents_every_option(capsys) -> None:
         ("grey", ["--response", "R", "--correction", "warp"], "--correction warp needs"),
         ("grey", ["--response", "R", "--correction", "tilt"], "--correction is 'tilt'"),
         ("grey", ["--response", "R", "--interpolation", "sinc"], "--interpolation is 'sinc'"),
-        ("grey", ["--response", "R", "--prior", "VTV"], "--prior VTV needs fixed weights"),
         ("grey", ["--response", "R", "--prior", "L1", "--exact"], "L1 has L1 terms"),
         ("grey", ["--response", "R", "--dispersion", "missing.yaml"], "does not exist"),
         ("grey", ["--response", "R", "--latent", "colour", "--bands", BANDS], "no --bands"),
