@@ -180,8 +180,7 @@ class SpectralGradient(_SpatialDifference):
     @property
     def spectral_matrix(self) -> np.ndarray:
         """The spectral difference D_λ as a (k−1, k) matrix: row b is ``e_{b+1} − e_b``."""
-        k = self.domain_shape[2]
-        return np.eye(k - 1, k, 1) - np.eye(k - 1, k)
+        return _spectral_difference_matrix(self.domain_shape[2])
 
     def fourier_symbol(self, shape: tuple[int, int] | None = None) -> np.ndarray:
         """Spatial multipliers, complex (rows, cols, 2), as :meth:`Gradient.fourier_symbol`.
@@ -196,9 +195,7 @@ class SpectralGradient(_SpatialDifference):
         return self._gradient(np.diff(x, axis=2))
 
     def _adjoint(self, y: np.ndarray) -> np.ndarray:
-        z = self._gradient_adjoint(y)  # (rows, cols, k−1)
-        zero = np.zeros_like(z[:, :, :1])
-        return np.concatenate([zero, z], axis=2) - np.concatenate([z, zero], axis=2)
+        return _spectral_difference_adjoint(self._gradient_adjoint(y))
 
 
 class SpectralDifference(LinearOperator):
@@ -218,15 +215,24 @@ class SpectralDifference(LinearOperator):
     @property
     def spectral_matrix(self) -> np.ndarray:
         """D_λ as a (k−1, k) matrix: row b is ``e_{b+1} − e_b``."""
-        k = self.domain_shape[2]
-        return np.eye(k - 1, k, 1) - np.eye(k - 1, k)
+        return _spectral_difference_matrix(self.domain_shape[2])
 
     def _forward(self, x: np.ndarray) -> np.ndarray:
         return np.diff(x, axis=2)
 
     def _adjoint(self, y: np.ndarray) -> np.ndarray:
-        zero = np.zeros_like(y[:, :, :1])
-        return np.concatenate([zero, y], axis=2) - np.concatenate([y, zero], axis=2)
+        return _spectral_difference_adjoint(y)
+
+
+def _spectral_difference_matrix(k: int) -> np.ndarray:
+    """D_λ, the forward difference along k bands, as a (k−1, k) matrix."""
+    return np.eye(k - 1, k, 1) - np.eye(k - 1, k)
+
+
+def _spectral_difference_adjoint(z: np.ndarray) -> np.ndarray:
+    """D_λᵀ along axis 2: (rows, cols, k−1, …) → (rows, cols, k, …)."""
+    zero = np.zeros_like(z[:, :, :1])
+    return np.concatenate([zero, z], axis=2) - np.concatenate([z, zero], axis=2)
 
 
 class Laplacian(_SpatialDifference):
