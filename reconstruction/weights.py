@@ -95,16 +95,19 @@ class _Evaluator:
 
     def solutions(self, weights: tuple[float, ...]) -> list[np.ndarray]:
         if weights not in self._cache:
-            start = self._nearest(weights)
+            start = None if self.own_starts else self._nearest(weights)
             out = []
             for i, p in enumerate(self.problems):
-                # the first weight starts from zeros (Algorithm 3): from solve()'s default,
-                # the unconstrained optimum, ADMM at a tiny weight barely moves before its
-                # test stops it, and the criteria then favour weights near machine epsilon
                 if self.own_starts:
                     x0 = None  # solve()'s default: initial_estimate at these weights
+                elif start is None:
+                    # the first weight starts from zeros (Algorithm 3): from solve()'s
+                    # default, the unconstrained optimum, ADMM at a tiny weight barely moves
+                    # before its test stops it, and the criteria then favour weights near
+                    # machine epsilon
+                    x0 = np.zeros(p.shape)
                 else:
-                    x0 = np.zeros(p.shape) if start is None else start[i]
+                    x0 = start[i]
                 out.append(solve(p.with_weights(weights), x0=x0, **self.solve_options).latent)
                 self.solves += 1
             self._cache[weights] = out
