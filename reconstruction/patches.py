@@ -109,7 +109,7 @@ class SolverOptions:
     terms: tuple[PriorTerm, ...]
     weights: tuple[float, ...]
     nonneg: bool = True
-    rtol: float = 1e-4
+    rtol: float | None = None  # None: the solver's default_rtol
     atol: float | None = None
     max_iter: int = 1000
     cg_rtol: float = 1e-5

@@ -36,7 +36,7 @@ from reconstruction.patches import (
 )
 from reconstruction.prior_terms import prior_terms
 from reconstruction.problem import Problem
-from reconstruction.solvers.admm import DEFAULT_RTOL, absolute_tolerance
+from reconstruction.solvers.admm import absolute_tolerance, default_rtol
 from reconstruction.weights import CRITERIA, select_weights
 
 MIN_PAD_PX = 8
@@ -248,7 +248,7 @@ def reconstruct(
     latent: str = "spectral",
     reference: str | None = None,
     kernel: str = "gaussian",
-    rtol: float = DEFAULT_RTOL,
+    rtol: float | None = None,
     max_iter: int = 1000,
     exact: bool = False,
     patch_px: int = 48,
@@ -311,8 +311,13 @@ def reconstruct(
         fitted to the image's mean colour).
     kernel : {"gaussian", "sinc"}
         Kernel of the spectral basis.
-    rtol, max_iter : float, int
-        ADMM relative tolerance and iteration limit per patch.
+    rtol : float, optional
+        ADMM relative tolerance per patch; default
+        :func:`~reconstruction.solvers.admm.default_rtol`: 1e-4, and 1e-5 for priors with
+        L1 terms when ``spectral_smoothness`` > 0; with σ > 0 that brings each patch's
+        objective within 1e-4 of its optimum.
+    max_iter : int
+        ADMM iteration limit per patch.
     exact : bool
         With non-negativity and L2-type priors, finish every patch with a projected-Newton
         active-set method: the exact optimum (ADMM's residual test alone can stop
@@ -372,6 +377,10 @@ def reconstruct(
             "spectral_smoothness applies to spectral latent images (bands along λ); give 0 "
             "for latent='colour'"
         )
+    if rtol is None:
+        rtol = default_rtol(any(t.norm == 1 for t in terms), smoothness)
+    if not (isinstance(rtol, (int, float)) and 0 < rtol < 1):
+        raise DataError(f"rtol must be a number in (0, 1), got {rtol!r}")
     if exact and any(t.norm == 1 for t in terms):
         raise DataError(
             f"the exact finish (exact=True, --exact) applies to L2-type priors (L2, Lap2, "
@@ -414,7 +423,7 @@ def reconstruct(
     colour_gain = 1.0 / float(space.colour_matrix().sum(axis=1).max())
     if reference == "mean-colour":
         space = space.with_scale(reference_scale(y, cfa, colour_gain * space.colour_matrix()))
-    atol = absolute_tolerance(y, rtol)
+    atol = absolute_tolerance(y, rtol)  # Algorithm 9 on the whole image
 
     log: dict = {
         "latent": space.kind,
@@ -423,6 +432,7 @@ def reconstruct(
         "nonneg": nonneg,
         "spectral_smoothness": smoothness,
         "exact": exact,
+        "rtol": rtol,
         "reference": reference,
         "patch_px": patch_px,
         "pad_px": pad_px,

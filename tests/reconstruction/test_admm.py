@@ -28,12 +28,14 @@ def rig_corner_formation(shape: tuple[int, int]) -> ImageFormation:
     )
 
 
-def problem(prior: str, weight: float, nonneg: bool, seed: int = 0) -> Problem:
+def problem(
+    prior: str, weight: float, nonneg: bool, seed: int = 0, smoothness: float = 0.0
+) -> Problem:
     rng = np.random.default_rng(seed)
     a = ImageFormation(SHAPE, "GBRG", normalised_colour()[None])
     _, raw = noisy_raw(a, rng)
     terms = PRIORS[prior]
-    return Problem(a, raw, terms, (weight,) * len(terms), nonneg)
+    return Problem(a, raw, terms, (weight,) * len(terms), nonneg, smoothness=smoothness)
 
 
 def smooth_reference(p: Problem) -> float:
@@ -80,11 +82,28 @@ def test_l2_priors_reach_the_optimum(prior: str, nonneg: bool) -> None:
 
 @pytest.mark.parametrize("prior", ["L1", "Lap1", "L1L1", "L1SpatialLap2", "VTV"])
 @pytest.mark.parametrize("nonneg", [False, True])
-def test_l1_priors_approach_a_long_solve(prior: str, nonneg: bool) -> None:
-    """L1 priors: the default solve is within 1e-2 of a much tighter, long solve.
+def test_l1_priors_reach_a_long_solve_with_spectral_smoothness(prior: str, nonneg: bool) -> None:
+    """L1 priors with σ = SUGGESTED_SMOOTHNESS: the default solve (ε_rel = DEFAULT_RTOL_L1)
+    is within 1e-4 of a long, tight solve (measured 6e-6–2.7e-5; at ε_rel = 1e-4 it stops
+    up to 1.5e-3 above)."""
+    p = problem(prior, 0.01, nonneg, seed=1, smoothness=SUGGESTED_SMOOTHNESS)
+    solution = solve(p)
+    reference = solve(p, rtol=1e-9, max_iter=3000)
+    gap = (solution.report.objective - reference.report.objective) / reference.report.objective
+    assert -1e-6 < gap < 1e-4
+    assert solution.report.converged and np.all(np.isfinite(solution.latent))
+    if nonneg:
+        assert solution.latent.min() >= 0
 
-    Known gap: the issue asks for 1e-4; ADMM converges slowly with L1 terms and
-    non-negativity together (thesis §3.7 saw the same). Tighten as the solver improves.
+
+@pytest.mark.parametrize("prior", ["L1", "Lap1", "VTV"])
+@pytest.mark.parametrize("nonneg", [False, True])
+def test_l1_priors_without_smoothness_approach_a_long_solve(prior: str, nonneg: bool) -> None:
+    """L1 priors without σ (the thesis' problem): the default solve (ε_rel = DEFAULT_RTOL) is
+    within 1e-2 of a much tighter, long solve (measured 1e-4–3.6e-3).
+
+    Known gap: the issue asks for 1e-4. Without σ the optimum is a degenerate metamer that
+    ADMM approaches slowly (see DEFAULT_RTOL_L1); with σ the test above reaches 1e-4.
     """
     p = problem(prior, 0.01, nonneg, seed=1)
     solution = solve(p)
@@ -381,3 +400,23 @@ def test_spectral_smoothness_is_validated() -> None:
     with_sigma = Problem(p.formation, p.raw, p.terms, p.weights, True, smoothness=0.5)
     expected = p.objective(x) + 0.5 * float(np.sum(np.diff(x, axis=2) ** 2))
     assert with_sigma.objective(x) == pytest.approx(expected, rel=1e-12)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("prior", ["L1", "Lap1"])
+@pytest.mark.parametrize("nonneg", [True, False])
+def test_l1_default_solve_reaches_the_optimum_on_128px(prior: str, nonneg: bool) -> None:
+    """The issue's optimality check for L1 and Laplacian-L1 priors on a 128×128 simulated
+    patch, σ = SUGGESTED_SMOOTHNESS, at the DMC's pick with σ (6.3e-3): the default solve is
+    within 1e-4 of the best objective a 1500-iteration solve at ε_rel = 1e-12 visits
+    (measured 5.5e-5–6.8e-5, 400–530 iterations, 8–13 s each)."""
+    rng = np.random.default_rng(3)
+    a = ImageFormation((128, 128), "GBRG", normalised_colour()[None])
+    _, raw = noisy_raw(a, rng, noise=0.002)
+    terms = PRIORS[prior]
+    p = Problem(a, raw, terms, (6.3e-3,) * len(terms), nonneg, smoothness=SUGGESTED_SMOOTHNESS)
+    reference = solve(p, rtol=1e-12, max_iter=1500, track_objective=True)
+    best = min(reference.report.history)
+    default = solve(p)
+    assert default.report.converged
+    assert -1e-6 < (default.report.objective - best) / best < 1e-4
