@@ -377,11 +377,12 @@ def reconstruct(
             "spectral_smoothness applies to spectral latent images (bands along λ); give 0 "
             "for latent='colour'"
         )
+    l1_terms = any(t.norm == 1 for t in terms)
     if rtol is None:
-        rtol = default_rtol(any(t.norm == 1 for t in terms), smoothness)
+        rtol = default_rtol(l1_terms, smoothness)
     if not (isinstance(rtol, (int, float)) and 0 < rtol < 1):
         raise DataError(f"rtol must be a number in (0, 1), got {rtol!r}")
-    if exact and any(t.norm == 1 for t in terms):
+    if exact and l1_terms:
         raise DataError(
             f"the exact finish (exact=True, --exact) applies to L2-type priors (L2, Lap2, "
             f"L2L2); {prior} has L1 terms, which only ADMM solves: drop it or pick an "

@@ -123,7 +123,7 @@ def test_l1_priors_get_a_tighter_default_tolerance_with_smoothness(
     smoothness: float, expected: float
 ) -> None:
     """ADMM's default ε_rel: 1e-5 for an L1 prior with σ > 0 (within 1e-4 of the optimum),
-    1e-4 otherwise; an explicit rtol wins."""
+    1e-4 otherwise (an L2 prior keeps it at either σ); an explicit rtol wins."""
     settings = {"cfa": "GBRG", "response": RESPONSE_RGB, "weights": "fixed:0.01", "prior": "L1"}
     raw = grey_raw((32, 32))
     result = reconstruct(raw, spectral_smoothness=smoothness, **settings)
@@ -131,7 +131,8 @@ def test_l1_priors_get_a_tighter_default_tolerance_with_smoothness(
     assert reconstruct(raw, spectral_smoothness=smoothness, rtol=3e-4, **settings).log[
         "rtol"
     ] == pytest.approx(3e-4)
-    assert reconstruct(raw, **{**settings, "prior": "L2"}).log["rtol"] == 1e-4
+    l2 = reconstruct(raw, spectral_smoothness=smoothness, **{**settings, "prior": "L2"})
+    assert l2.log["rtol"] == 1e-4
 
 
 def test_noisy_flat_scene_is_still_taken_as_flat() -> None:
