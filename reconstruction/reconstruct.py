@@ -93,13 +93,14 @@ def parse_weights(
         if kind == "auto":
             if rest not in CRITERIA:
                 raise DataError(
-                    f"unknown weight criterion {rest!r} in {weights!r}; use auto:dmc, auto:mdc "
-                    "or auto:msec"
+                    f"unknown weight criterion {rest!r} in {weights!r}; use auto:dmc, "
+                    "auto:dmc-malvar, auto:dmc-menon, auto:mdc or auto:msec"
                 )
             return rest, None
         if kind != "fixed":
             raise DataError(
-                f"weights {weights!r}: use auto:dmc|auto:mdc|auto:msec or fixed:W1[,W2]"
+                f"weights {weights!r}: use auto:dmc|auto:dmc-menon|auto:mdc|auto:msec or "
+                "fixed:W1[,W2]"
             )
         try:
             values = tuple(float(v) for v in rest.split(","))
@@ -302,8 +303,12 @@ def reconstruct(
         that ADMM reaches within 1e-4; it biases spectra that are not smooth (narrow-band
         light) — measurements in :mod:`reconstruction.problem`. Spectral latent only.
     weights : str or sequence of float
-        ``"auto:dmc"`` (default), ``"auto:mdc"``, ``"auto:msec"`` (needs `truth`), or fixed
-        weights (``"fixed:0.01"`` or a sequence), in normalised units.
+        ``"auto:dmc"`` (default; the thesis' demosaicing criterion against bilinear
+        demosaicing), ``"auto:dmc-menon"`` / ``"auto:dmc-malvar"`` (the same against a
+        stronger demosaic: sharper weights for edge-preserving priors, e.g. VTV; not for
+        narrow-band light), ``"auto:mdc"``, ``"auto:msec"`` (needs `truth`), or fixed
+        weights (``"fixed:0.01"`` or a sequence), in normalised units
+        (:mod:`reconstruction.weights`).
     latent : {"spectral", "colour"}
         Problem (3.1), or direct colour estimation (3.27).
     reference : {None, "mean-colour"}

@@ -121,7 +121,7 @@ def simulated_case(
         cube[wall] = np.nan  # the grey wall has no spectral truth
         return cube
 
-    return {
+    case = {
         "raw": raw,
         "cfa": rig.cfa,
         "response": world.response,
@@ -130,10 +130,27 @@ def simulated_case(
         "truth": truth,
         "max_shift_px": float(rig.sim.lens.max_shift_px),
     }
+    if scene == "colorchecker" and flat_fraction == 0:
+        from labkit.sim.scenes import colorchecker_patch_boxes
+        from reconstruction.residual_aberration import STRIP_PX
+
+        boxes = colorchecker_patch_boxes(world.scene(scene))
+        if np.min(boxes[:, 2:] - boxes[:, :2]) > 2 * STRIP_PX + 2:  # patches have centres
+            case["boxes"] = boxes
+    return case
+
+
+def edge_errors(case: dict[str, Any], raw_colour: np.ndarray) -> dict[str, float]:
+    """Residual aberration (§4.4.3): RMSE per channel in the ColorChecker's edge strips."""
+    from reconstruction import residual_aberration
+
+    measure = residual_aberration(raw_colour, case["raw"], cfa=case["cfa"], boxes=case["boxes"])
+    return {f"edge_rmse_{c}": float(v) for c, v in zip("RGB", measure.edge.rmse, strict=True)}
 
 
 def errors(case: dict[str, Any], result) -> dict[str, float]:
-    """Spectral RMSE/MRAE/GOF (registered, 8-px border left out) and colour RMSE per channel."""
+    """Spectral RMSE/MRAE/GOF (registered, 8-px border left out), colour RMSE per channel,
+    and on the ColorChecker the edge-strip RMSE per channel (:func:`edge_errors`)."""
     from reconstruction.metrics import colour_errors, spectral_errors
 
     inner = (slice(8, -8), slice(8, -8))
@@ -150,6 +167,7 @@ def errors(case: dict[str, Any], result) -> dict[str, float]:
         "spectral_mrae": spectral.mrae,
         "spectral_gof": spectral.gof,
         **{f"colour_rmse_{c}": float(v) / peak for c, v in zip("RGB", colour.rmse, strict=True)},
+        **(edge_errors(case, result.raw_colour) if "boxes" in case else {}),
     }
 
 
@@ -221,6 +239,12 @@ def _run_isolated(
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(max_workers=1, mp_context=context) as pool:
         return pool.submit(_isolated, inputs, options, repeats, short_s).result()
+
+
+def _baseline_images(case: dict[str, Any]) -> dict[str, np.ndarray]:
+    from reconstruction import BASELINES, baseline
+
+    return {m: baseline(case["raw"], m, cfa=case["cfa"]) for m in BASELINES}
 
 
 def _bands(case: dict[str, Any], count: int) -> np.ndarray:
@@ -306,6 +330,19 @@ def bench_reconstruct(
         )
     )
     weights = f"fixed:{result.log['weights']['values'][0]:.6g}"
+    edge_options = {**main_options, "prior": "VTV", "interpolation": "cubic"}
+    edge_result, seconds = _run(main_case, weights="auto:dmc-menon", **edge_options)
+    results.append(
+        _measurement(
+            "344×408 ColorChecker, 7 bands, VTV, nonneg, cubic Φ, auto:dmc-menon",
+            seconds,
+            [seconds],
+            None,
+            main_case,
+            edge_result,
+            {"image": "408×344", "bands": 7},
+        )
+    )
 
     variant_case = simulated_case(rig_path, VARIANT_SHAPE, "texture")
     variants = [
@@ -410,6 +447,13 @@ def bench_reconstruct(
         f"Variants reuse the weight the target case chose ({weights}) so that they compare "
         "solver settings, not weight selection.",
         skipping,
+        "Residual aberration (§4.4.3, edge-strip RMSE R/G/B, ColorChecker rows) of the "
+        "demosaicing baselines: "
+        + "; ".join(
+            f"{method} " + "/".join(f"{v:.4f}" for v in edge_errors(main_case, image).values())
+            for method, image in _baseline_images(main_case).items()
+        )
+        + ".",
         "Peak memory: the largest resident set so far of this process or a finished child; "
         "for the full-size case and the scaling sizes, that of the fresh process the "
         "reconstruction ran in (VmHWM), the simulation left out.",

@@ -24,7 +24,7 @@ SCHEDULERS = ("threads", "processes", "sync")
 #: Texture below which a patch counts as flat (passed to reconstruct, counted in the summary).
 FLAT_THRESHOLD = 0.01
 #: The weight criteria the command line can use (``auto:msec`` needs the true image).
-CLI_CRITERIA = ("dmc", "mdc")
+CLI_CRITERIA = ("dmc", "dmc-menon", "dmc-malvar", "mdc")
 
 
 def register(commands: argparse._SubParsersAction) -> None:
@@ -109,10 +109,12 @@ def register(commands: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--weights",
         default="auto:dmc",
-        metavar="auto:dmc|auto:mdc|fixed:W[,W…]",
+        metavar="auto:dmc|auto:dmc-menon|auto:dmc-malvar|auto:mdc|fixed:W[,W…]",
         help="regularisation weights: chosen by Algorithm 3 on the most textured patch with "
-        "the demosaicing (dmc) or minimum-distance (mdc) criterion, or fixed, one per prior "
-        "term, in normalised units (default auto:dmc)",
+        "the demosaicing criterion against bilinear demosaicing (dmc, the thesis') or "
+        "against Menon's or Malvar's demosaic (dmc-menon, dmc-malvar: sharper weights for "
+        "--prior VTV; not for narrow-band light), or the minimum-distance criterion (mdc); "
+        "or fixed, one per prior term, in normalised units (default auto:dmc)",
     )
     parser.add_argument(
         "--latent",
@@ -424,11 +426,12 @@ def _check_weights(text: str, parse_weights: Any, prior: str, terms: tuple) -> N
     if kind == "auto" and rest == "msec":
         raise ConfigError(
             f"--weights {text} needs the true spectral image, which only the Python API takes "
-            "(reconstruct(..., truth=...)); use auto:dmc, auto:mdc or fixed:W"
+            "(reconstruct(..., truth=...)); use auto:dmc, auto:dmc-menon, auto:mdc or fixed:W"
         )
     if kind == "auto" and rest not in CLI_CRITERIA:
         raise ConfigError(
-            f"--weights {text}: unknown criterion {rest!r}; use auto:dmc, auto:mdc or fixed:W"
+            f"--weights {text}: unknown criterion {rest!r}; use "
+            f"{', '.join('auto:' + c for c in CLI_CRITERIA)} or fixed:W"
         )
     if kind not in ("auto", "fixed"):
         raise ConfigError(

@@ -299,6 +299,8 @@ def test_help_documents_every_option(capsys) -> None:
         ("grey", ["--response", "R", "--weights", "fixed:0.1,0.2"], "L2 has 1 term(s)"),
         ("grey", ["--response", "R", "--weights", "fixed:x"], "must be numbers"),
         ("grey", ["--response", "R", "--weights", "auto:msec"], "only the Python API"),
+        ("grey", ["--response", "R", "--weights", "auto:dmc-ari"],
+         "unknown criterion 'dmc-ari'; use auto:dmc, auto:dmc-menon, auto:dmc-malvar"),
         ("grey", ["--response", "R", "--dispersion", "model_small"],
          "calibrated for 32×48 px images but the raw image is 64×96 px"),
         ("grey", ["--response", "R", "--dispersion", "model_from"], "needs to_reference"),
