@@ -27,6 +27,7 @@ Without splits (L2 priors, no constraint) the problem is one quadratic solve.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -256,6 +257,14 @@ class _QuadraticStep:
         return result.x
 
 
+def quadratic_system(problem: Problem) -> tuple[Callable[[np.ndarray], np.ndarray], FourierSolver]:
+    """K, the Hessian of the problem's quadratic part (2AᵀA + Σ 2w_j D_jᵀD_j over the L2
+    terms + 2εI), as ``x ↦ K x`` with the true A (and Φ), and its FFT solver: K itself
+    without Φ, the mean-translation approximation with (the active-set finish's inputs)."""
+    step = _QuadraticStep(problem, [], 1e-5, 100)
+    return step.apply, step.solver
+
+
 def data_curvature(problem: Problem) -> float:
     """Mean diagonal of 2AᵀA per latent value (dispersion aside): the default ρ.
 
@@ -461,8 +470,11 @@ class _Anderson:
 
     With memory m the next iterate is ``g(y) − (ΔY + ΔF) γ``, γ the least-squares fit
     of the newest residual f = g(y) − y by the last m residual differences ΔF. An
-    extrapolation whose residual grew more than :data:`ANDERSON_SAFEGUARD`-fold over the
-    best so far is dropped for the plain step and the memory restarts.
+    extrapolation whose residual comes out more than :data:`ANDERSON_SAFEGUARD`-fold
+    above the best so far is rejected: the iteration goes on from the plain step of the
+    point it was extrapolated from, and the memory restarts. (Keeping it instead cost
+    ADMM 330 iterations to recover on a 32² patch whose residual differences had become
+    nearly collinear near convergence: the objective jumped from 5.22 to 4.5e10.)
     """
 
     def __init__(self, memory: int) -> None:
@@ -478,6 +490,7 @@ class _Anderson:
         self.last: tuple[np.ndarray, np.ndarray] | None = None
         self.best = np.inf
         self.accepted = 0
+        self.fallback: np.ndarray | None = None  # the plain step an extrapolation replaced
 
     def _store(self, d_state: np.ndarray, d_residual: np.ndarray) -> None:
         if self._d_states is None or self._d_states.shape[1] != d_state.size:
@@ -498,7 +511,10 @@ class _Anderson:
         residual = mapped - state
         norm = float(np.linalg.norm(residual))
         if norm > ANDERSON_SAFEGUARD * self.best:
+            fallback = self.fallback
             self.reset()
+            if fallback is not None:  # `state` was a bad extrapolation: undo it
+                return fallback
         self.best = min(self.best, norm)
         if self.last is not None:
             self._store(state - self.last[0], residual - self.last[1])
@@ -515,6 +531,7 @@ class _Anderson:
         normalised = gram / np.outer(scale, scale) + 1e-10 * np.eye(m)
         gamma = np.linalg.solve(normalised, (d_residuals @ residual) / scale) / scale
         self.accepted = 1
+        self.fallback = mapped
         return mapped - gamma @ d_states - gamma @ d_residuals
 
 

