@@ -241,12 +241,6 @@ def _run_isolated(
         return pool.submit(_isolated, inputs, options, repeats, short_s).result()
 
 
-def _baseline_images(case: dict[str, Any]) -> dict[str, np.ndarray]:
-    from reconstruction import BASELINES, baseline
-
-    return {m: baseline(case["raw"], m, cfa=case["cfa"]) for m in BASELINES}
-
-
 def _bands(case: dict[str, Any], count: int) -> np.ndarray:
     from reconstruction import LatentSpace
 
@@ -438,6 +432,9 @@ def bench_reconstruct(
     summary = scaling_summary(per_size)
     results += [*per_size, summary]
 
+    from reconstruction.evaluation import baseline_images
+
+    baselines, _ = baseline_images(main_case["raw"], cfa=main_case["cfa"])
     notes: list[str | Plot | Table] = [
         "Reconstruction inputs: simulated renders (1 nm grid, exact pixel areas, true lens "
         f"dispersion up to {main_case['max_shift_px']:g} px) plus Gaussian noise of "
@@ -451,7 +448,7 @@ def bench_reconstruct(
         "demosaicing baselines: "
         + "; ".join(
             f"{method} " + "/".join(f"{v:.4f}" for v in edge_errors(main_case, image).values())
-            for method, image in _baseline_images(main_case).items()
+            for method, image in baselines.items()
         )
         + ".",
         "Peak memory: the largest resident set so far of this process or a finished child; "

@@ -144,16 +144,14 @@ class FourierSolver:
         a = mask_coefficients(cfa)
         xor = np.array([[s ^ t for t in range(4)] for s in range(4)])
         a_xor = a[:, xor]  # (3, 4, 4)
-        if colour.ndim == 2:
-            data = np.einsum("ci,cst,cj->sitj", colour, a_xor, colour)[None]
-        else:
-            quads = to_quadruples(colour)  # (Q, 4, 3, n)
-            data = np.einsum("qsci,cst,qtcj->qsitj", quads.conj(), a_xor, quads, optimize=True)
         # a real image's spectrum is conjugate-symmetric, and so is K: only about half the
         # quadruples are solved, the rest are their conjugates (about half the time)
         self._kept, self._filled_rows, self._source_rows = conjugate_quadruples(self.shape)
-        if data.shape[0] > 1:
-            data = data[self._kept]
+        if colour.ndim == 2:
+            data = np.einsum("ci,cst,cj->sitj", colour, a_xor, colour)[None]
+        else:
+            quads = to_quadruples(colour)[self._kept]  # (H, 4, 3, n)
+            data = np.einsum("qsci,cst,qtcj->qsitj", quads.conj(), a_xor, quads, optimize=True)
         self._data = data_weight * data  # (H or 1, 4, n, 4, n)
         prior = np.zeros((rows, cols, n, n))
         for coefficient, term in terms:
