@@ -48,6 +48,7 @@ from reconstruction.operators import (
     LinearOperator,
     SpectralDifference,
     SpectralGradient,
+    SpectralRoughness,
 )
 
 #: "spectral" (∇λ alone) is no prior of Table 3.1: it is the operator of the spectral
@@ -100,6 +101,16 @@ class PriorTerm:
         d = SpectralGradient((1, 1, channels)).spectral_matrix
         return d.T @ d
 
+    def fourier_pieces(
+        self, shape: tuple[int, int], channels: int
+    ) -> list[tuple[np.ndarray, np.ndarray]]:
+        """DᵀD as (spatial symbol (rows, cols), channel matrix) pairs, for the FFT solver."""
+        return [(self.spatial_symbol(shape), self.spectral_matrix(channels))]
+
+    def quadratic(self) -> PriorTerm:
+        """The same operator with p = 2 (an L1 or grouped term made quadratic)."""
+        return self if self.norm == 2 else PriorTerm(self.operator, 2)
+
     def value(self, d_image: np.ndarray) -> float:
         """S(I) = ‖D I‖_p^p (or ‖D I‖₂,₁) from D I."""
         if self.grouped:
@@ -110,6 +121,41 @@ class PriorTerm:
 #: Axes of D I (rows, cols, channels, directions) a grouped term takes the 2-norm over.
 GROUP_AXES = (2, 3)
 
+
+@dataclass(frozen=True, eq=False)
+class SmoothnessTerm:
+    """``‖S I‖²`` with S the :class:`~reconstruction.operators.SpectralRoughness` of the
+    colour matrix `colour` (channels × k): the spectral smoothness term of
+    :mod:`reconstruction.problem` (beyond the thesis, no prior of Table 3.1). Same interface
+    as :class:`PriorTerm`.
+    """
+
+    colour: np.ndarray
+    operator: str = "spectral_roughness"
+    norm: Literal[2] = 2
+    grouped: bool = False
+
+    @property
+    def label(self) -> str:
+        return "spectral_roughness_L2"
+
+    def difference(self, shape: tuple[int, int, int]) -> SpectralRoughness:
+        return SpectralRoughness(shape, self.colour)
+
+    def fourier_pieces(
+        self, shape: tuple[int, int], channels: int
+    ) -> list[tuple[np.ndarray, np.ndarray]]:
+        return self.difference((*shape, channels)).fourier_pieces(shape)
+
+    def quadratic(self) -> SmoothnessTerm:
+        return self
+
+    def value(self, d_image: np.ndarray) -> float:
+        return float(np.sum(d_image**2))
+
+
+#: Any penalty a :class:`~reconstruction.problem.Problem` holds.
+Term = PriorTerm | SmoothnessTerm
 
 _G1, _G2 = PriorTerm("gradient", 1), PriorTerm("gradient", 2)
 _S1, _S2 = PriorTerm("spectral_gradient", 1), PriorTerm("spectral_gradient", 2)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,7 +36,7 @@ from reconstruction.patches import (
     texture,
 )
 from reconstruction.prior_terms import prior_terms
-from reconstruction.problem import Problem
+from reconstruction.problem import SUGGESTED_SMOOTHNESS, Problem
 from reconstruction.solvers.admm import absolute_tolerance, default_rtol
 from reconstruction.weights import CRITERIA, select_weights
 
@@ -57,6 +58,19 @@ REFERENCES = ("mean-colour",)
 
 REFERENCE_SMOOTHING = 1e-2
 """Weight w of (6.1)'s spectral-gradient penalty, relative to ‖C‖² (normalised units)."""
+
+
+class NarrowBandWarning(UserWarning):
+    """The image's light looks narrow-band while the spectral smoothness term is on."""
+
+
+NARROW_BAND_MISFIT = 0.02
+"""Misfit of (6.1)'s smooth fit to the image's mean colour above which the light is taken
+to be narrow-band, and a spectral smoothness σ > 0 draws a warning. Simulated rig (mean raw
+colour of the ColorChecker and the textured scene): unfiltered light 0.005–0.006; through
+the 10 nm filters 400 nm 0.001–0.003, 450 nm 0.081, 500 nm 0.033, 550 nm 0.18, 600 nm
+0.024, 650 nm 0.11, 700 nm 0.017 (the filters at the ends of the camera's response pass
+mostly leaked broadband light)."""
 
 
 @dataclass
@@ -195,16 +209,14 @@ def check_dispersion_model(
     return model
 
 
-def reference_scale(raw: np.ndarray, cfa: str, colour: np.ndarray) -> np.ndarray:
-    """Per-channel scale r of §6.3: a smooth non-negative spectrum with the image's mean colour.
+def smooth_mean_colour(raw: np.ndarray, cfa: str, colour: np.ndarray) -> tuple[np.ndarray, float]:
+    """(6.1): a smooth non-negative spectrum s with the image's mean colour, and its misfit.
 
-    Solves (6.1), ``argmin_s ‖C s − c‖² + w‖∇λ s‖², s ≥ 0`` with c the mean raw colour
-    (per CFA channel) and w = :data:`REFERENCE_SMOOTHING`·‖C‖², by NNLS on the stacked
-    system. The result is scaled to mean 1 and floored at 1 % of its peak, so every
-    channel keeps a positive scale.
+    Solves ``argmin_s ‖C s − c‖² + w‖∇λ s‖², s ≥ 0`` with c the mean raw colour (per CFA
+    channel) and w = :data:`REFERENCE_SMOOTHING`·‖C‖², by NNLS on the stacked system.
+    Returns s and ``‖C s − c‖ / ‖c‖`` (0 when c is black).
     """
-    index = channel_index(cfa, raw.shape)
-    mean_colour = np.array([raw[index == c].mean() for c in range(3)])
+    mean_colour = _mean_colour(raw, cfa)
     n = colour.shape[1]
     if n == 3 and np.allclose(colour, np.diag(np.diag(colour))):
         s = np.maximum(mean_colour / np.diag(colour), 0.0)
@@ -214,6 +226,22 @@ def reference_scale(raw: np.ndarray, cfa: str, colour: np.ndarray) -> np.ndarray
         s, _ = nnls(
             np.vstack([colour, np.sqrt(w) * d]), np.concatenate([mean_colour, np.zeros(n - 1)])
         )
+    size = float(np.linalg.norm(mean_colour))
+    misfit = float(np.linalg.norm(colour @ s - mean_colour)) / size if size > 0 else 0.0
+    return s, misfit
+
+
+def _mean_colour(raw: np.ndarray, cfa: str) -> np.ndarray:
+    """Mean raw value of each CFA channel (R, G, B)."""
+    index = channel_index(cfa, raw.shape)
+    return np.array([raw[index == c].mean() for c in range(3)])
+
+
+def reference_scale(raw: np.ndarray, cfa: str, colour: np.ndarray) -> np.ndarray:
+    """Per-channel scale r of §6.3: :func:`smooth_mean_colour`'s spectrum, scaled to mean 1
+    and floored at 1 % of its peak, so every channel keeps a positive scale."""
+    s, _ = smooth_mean_colour(raw, cfa, colour)
+    n = colour.shape[1]
     if not np.any(s > 0):
         return np.ones(n)
     s = np.maximum(s, 0.01 * s.max())
@@ -244,7 +272,7 @@ def reconstruct(
     interpolation: str = "bilinear",
     prior: str = "L2",
     nonneg: bool = True,
-    spectral_smoothness: float = 0.0,
+    spectral_smoothness: float | None = None,
     weights: str | Sequence[float] = "auto:dmc",
     latent: str = "spectral",
     reference: str | None = None,
@@ -294,14 +322,17 @@ def reconstruct(
         (:mod:`reconstruction.prior_terms`).
     nonneg : bool
         Constrain the latent image to be non-negative.
-    spectral_smoothness : float
-        σ of the term σ‖∇λ I‖² (normalised units; beyond the thesis; 0: off, the thesis'
-        problem): the solve picks the smoothest of the spectra the data and the prior
-        cannot tell apart rather than the smallest. For scenes of smooth reflectances
-        :data:`~reconstruction.problem.SUGGESTED_SMOOTHNESS` (1e-3) gives lower spectral
-        and green/blue errors, weights the DMC criterion determines well and an optimum
-        that ADMM reaches within 1e-4; it biases spectra that are not smooth (narrow-band
-        light) — measurements in :mod:`reconstruction.problem`. Spectral latent only.
+    spectral_smoothness : float, optional
+        σ of the spectral roughness term σ‖S I‖² (normalised units; beyond the thesis;
+        :class:`~reconstruction.operators.SpectralRoughness`): among the spectra the data
+        and the prior cannot tell apart, the solve picks the smoothest rather than the
+        smallest, without pulling a patch's mean colour. Default
+        :data:`~reconstruction.problem.SUGGESTED_SMOOTHNESS` (1e-3) for a spectral latent
+        image: lower spectral, colour and edge errors than σ = 0, weights the DMC
+        determines well, and an optimum the default solve reaches within 1e-4. 0 is the
+        thesis' problem, for narrow-band light (bandpass filters, lasers, LEDs), whose
+        spectra the term biases (measurements in :mod:`reconstruction.problem`). Spectral
+        latent only (default 0 for ``latent="colour"``).
     weights : str or sequence of float
         ``"auto:dmc"`` (default; the thesis' demosaicing criterion against bilinear
         demosaicing), ``"auto:dmc-menon"`` / ``"auto:dmc-malvar"`` (the same against a
@@ -318,18 +349,18 @@ def reconstruct(
         Kernel of the spectral basis.
     rtol : float, optional
         ADMM relative tolerance per patch; default
-        :func:`~reconstruction.solvers.admm.default_rtol`: 1e-4, and 1e-5 for priors with
-        L1 terms when ``spectral_smoothness`` > 0; with σ > 0 that brings each patch's
-        objective within 1e-4 of its optimum.
+        :func:`~reconstruction.solvers.admm.default_rtol`: 1e-5 when
+        ``spectral_smoothness`` > 0, which brings each patch's objective within 1e-4 of
+        its optimum for every prior, and 1e-4 at σ = 0.
     max_iter : int
         ADMM iteration limit per patch.
     exact : bool
         With non-negativity and L2-type priors, finish every patch with a projected-Newton
-        active-set method: the exact optimum (ADMM's residual test alone can stop
-        1–10 % above it at small weights), at several times the solve time with Φ (7× on
-        the bench's texture crop). Weights are still chosen with plain ADMM solves, and
-        they suit those: at the DMC's weight the exact optimum has a slightly larger
-        spectral error than ADMM's early stop (0.265 against 0.240 on that crop).
+        active-set method: the exact optimum, at several times the solve time with Φ (7×
+        on the bench's texture crop). With the default σ the default solve is within 1e-4
+        of it already; at σ = 0 ADMM's residual test alone can stop 1–10 % above it at
+        small weights, but that optimum is the poorer image (spectral error 0.265 against
+        ADMM's 0.240 on that crop at the DMC's weight, which is chosen with ADMM solves).
     patch_px : int
         Patch size, px (even). Small patches suit the FFT preconditioner: across a patch
         the dispersion departs less from its mean translation.
@@ -374,6 +405,8 @@ def reconstruct(
     else:
         raise DataError(f"unknown latent space {latent!r}; use 'spectral' or 'colour'")
     terms = prior_terms(prior, channels=space.channels)
+    if spectral_smoothness is None:
+        spectral_smoothness = SUGGESTED_SMOOTHNESS if space.kind == "spectral" else 0.0
     smoothness = float(spectral_smoothness)
     if not (np.isfinite(smoothness) and smoothness >= 0):
         raise DataError(f"spectral_smoothness must be finite and ≥ 0, got {spectral_smoothness}")
@@ -384,7 +417,7 @@ def reconstruct(
         )
     l1_terms = any(t.norm == 1 for t in terms)
     if rtol is None:
-        rtol = default_rtol(l1_terms, smoothness)
+        rtol = default_rtol(smoothness)
     if not (isinstance(rtol, (int, float)) and 0 < rtol < 1):
         raise DataError(f"rtol must be a number in (0, 1), got {rtol!r}")
     if exact and l1_terms:
@@ -430,8 +463,20 @@ def reconstruct(
     if reference == "mean-colour":
         space = space.with_scale(reference_scale(y, cfa, colour_gain * space.colour_matrix()))
     atol = absolute_tolerance(y, rtol)  # Algorithm 9 on the whole image
+    notices = []
+    if smoothness > 0 and np.all(_mean_colour(y, cfa) > 0):  # else no colour to judge
+        _, misfit = smooth_mean_colour(y, cfa, colour_gain * space.colour_matrix())
+        if misfit > NARROW_BAND_MISFIT:
+            notices.append(
+                f"the image's mean raw colour is {100 * misfit:.0f} % away from that of any "
+                "smooth non-negative spectrum: narrow-band light? The spectral smoothness "
+                f"term (σ = {smoothness:g}) biases such colours; give spectral_smoothness=0 "
+                "(--spectral-smoothness 0) for the thesis' problem"
+            )
+            warnings.warn(notices[-1], NarrowBandWarning, stacklevel=2)
 
     log: dict = {
+        "warnings": notices,
         "latent": space.kind,
         "bands_nm": None if space.centres_nm is None else [float(v) for v in space.centres_nm],
         "prior": prior,

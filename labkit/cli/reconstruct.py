@@ -13,6 +13,7 @@ import json
 import math
 import os
 import sys
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -101,10 +102,11 @@ def register(commands: argparse._SubParsersAction) -> None:
         "--spectral-smoothness",
         default=None,
         metavar="SIGMA",
-        help="weight σ of σ‖∇λ I‖², which picks the smoothest of the spectra the data and "
-        "the prior cannot tell apart (beyond the thesis), in normalised units; 1e-3 suits "
-        "scenes of smooth reflectances, and biases narrow-band spectra "
-        "(default 0: off, as the thesis)",
+        help="weight σ of the spectral roughness term, which picks the smoothest of the "
+        "spectra the data and the prior cannot tell apart without pulling each patch's "
+        "mean colour (beyond the thesis), in normalised units; give 0 (the thesis' "
+        "problem) for narrow-band light (bandpass filters, lasers, LEDs), whose spectra it "
+        "biases (default 1e-3 with --latent spectral, 0 with --latent colour)",
     )
     parser.add_argument(
         "--weights",
@@ -134,15 +136,16 @@ def register(commands: argparse._SubParsersAction) -> None:
         "--rtol",
         default=None,
         metavar="TOL",
-        help="ADMM relative tolerance per patch (default 1e-4; 1e-5 for priors with L1 terms "
-        "when --spectral-smoothness > 0, which brings them within 1e-4 of the optimum)",
+        help="ADMM relative tolerance per patch (default 1e-5, within 1e-4 of the optimum; "
+        "1e-4 with --spectral-smoothness 0)",
     )
     parser.add_argument(
         "--exact",
         action="store_true",
         help="with --nonneg and an L2-type prior, finish every patch with a projected-Newton "
-        "active-set solve: the exact optimum instead of ADMM's (1–10 %% above it at small "
-        "weights), at several times the cost",
+        "active-set solve: the exact optimum instead of ADMM's (with --spectral-smoothness 0 "
+        "ADMM stops 0.05–10 %% above it at small weights; with the default σ within 1e-4), "
+        "at several times the cost",
     )
     parser.add_argument(
         "--patch-px",
@@ -196,18 +199,21 @@ def _reconstruct(args: argparse.Namespace) -> int:
         print(f"choosing weights ({args.weights}, Algorithm 3)…", file=sys.stderr)
     try:
         from reconstruction import reconstruct
+        from reconstruction.reconstruct import NarrowBandWarning
 
-        result = reconstruct(
-            job.raw.raw,
-            cfa=job.cfa,
-            response=job.response,
-            bands=job.bands,
-            dispersion=job.dispersion,
-            reference=job.reference,
-            flat_threshold=FLAT_THRESHOLD,
-            progress=bar.update,
-            **job.options,
-        )
+        with warnings.catch_warnings():  # the summary prints it from the log
+            warnings.simplefilter("ignore", NarrowBandWarning)
+            result = reconstruct(
+                job.raw.raw,
+                cfa=job.cfa,
+                response=job.response,
+                bands=job.bands,
+                dispersion=job.dispersion,
+                reference=job.reference,
+                flat_threshold=FLAT_THRESHOLD,
+                progress=bar.update,
+                **job.options,
+            )
     except OSError as error:
         if not args.scheduler.startswith("tcp://"):
             raise
@@ -635,6 +641,8 @@ def _print_summary(
             f"warning: {unconverged} patch(es) stopped at the iteration limit before reaching "
             "--rtol"
         )
+    for notice in log["warnings"]:
+        print(f"warning: {notice}")
     print(f"time: {seconds:.1f} s (weights {weights['seconds']:.1f} s, patches "
           f"{log['solve_seconds']:.1f} s)")  # fmt: skip
     print("wrote " + ", ".join(str(path) for path in paths.values()))

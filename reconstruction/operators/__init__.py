@@ -15,6 +15,9 @@ Contents
     consecutive bands ≤ 0.1 px apart.
 :class:`Gradient`, :class:`SpectralGradient`, :class:`Laplacian` (§3.5, (3.15)–(3.20))
     Periodic (default) or Neumann differences with their Fourier symbols.
+:class:`SpectralDifference`, :class:`SpectralRoughness`, :func:`smoothest_metamer`
+    Per-pixel spectral roughness (the spectral smoothness term beyond the thesis); the
+    latter never pulls the patch's mean colour.
 """
 
 from reconstruction.operators._base import Adjoint, Composition, DotTest, LinearOperator, dot_test
@@ -27,6 +30,8 @@ from reconstruction.operators.priors import (
     Laplacian,
     SpectralDifference,
     SpectralGradient,
+    SpectralRoughness,
+    smoothest_metamer,
 )
 
 __all__ = [
@@ -42,8 +47,10 @@ __all__ = [
     "SpectralBasis",
     "SpectralDifference",
     "SpectralGradient",
+    "SpectralRoughness",
     "SpectralToColour",
     "choose_bands",
     "dispersion_samples",
     "dot_test",
+    "smoothest_metamer",
 ]

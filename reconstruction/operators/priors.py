@@ -224,6 +224,94 @@ class SpectralDifference(LinearOperator):
         return _spectral_difference_adjoint(y)
 
 
+class SpectralRoughness(LinearOperator):
+    """Roughness of each pixel's spectrum, with the patch's mean colour left free:
+    (rows, cols, k) → (rows, cols, k−1).
+
+    ``S x = D_λ x − D_λ R C x̄``, where x̄ is the patch's mean spectrum (broadcast to every
+    pixel) and ``R C x̄`` is the smoothest spectrum of its colour ``C x̄`` (
+    :func:`smoothest_metamer`). In the Fourier domain S is ``D_λ`` at every spatial
+    frequency but DC, and ``D_λ P`` at DC, with ``P = I − R C`` the part of a spectrum its
+    colour does not fix. So ``‖S x‖²`` penalises rough spectra wherever the image varies,
+    yet never trades the patch's mean colour for smoothness: only the unseen part of its
+    mean spectrum is smoothed (a flat patch of narrow-band light keeps its colour unless
+    non-negativity leaves it only rough spectra).
+
+    Parameters
+    ----------
+    shape : (rows, cols, k)
+        Latent image shape, k ≥ 2.
+    colour : ndarray (channels, k)
+        The per-pixel colour matrix C (any scale).
+    """
+
+    name = "∇λ(I − RC̄)"
+
+    def __init__(self, shape: tuple[int, int, int], colour: np.ndarray) -> None:
+        shape = _check_shape(shape, "SpectralRoughness", min_channels=2)
+        rows, cols, k = shape
+        super().__init__(shape, (rows, cols, k - 1))
+        d = _spectral_difference_matrix(k)
+        self.unseen = d @ (np.eye(k) - smoothest_metamer(colour))
+        """D_λ P (k−1 × k): the roughness of a spectrum's part its colour does not fix."""
+        self._mean_part = d - self.unseen  # D_λ R C
+
+    def fourier_pieces(self, shape: tuple[int, int]) -> list[tuple[np.ndarray, np.ndarray]]:
+        """SᵀS as (spatial symbol, k × k matrix) pairs: ``D_λᵀD_λ`` everywhere, corrected
+        at DC to ``(D_λP)ᵀ(D_λP)``."""
+        k = self.domain_shape[2]
+        d = _spectral_difference_matrix(k)
+        dc = np.zeros(shape)
+        dc[0, 0] = 1.0
+        return [(np.ones(shape), d.T @ d), (dc, self.unseen.T @ self.unseen - d.T @ d)]
+
+    def _forward(self, x: np.ndarray) -> np.ndarray:
+        mean = x.mean(axis=(0, 1), keepdims=True)
+        return np.diff(x, axis=2) - mean @ self._mean_part.T.astype(x.dtype, copy=False)
+
+    def _adjoint(self, y: np.ndarray) -> np.ndarray:
+        rows, cols = y.shape[:2]
+        mean = y.sum(axis=(0, 1), keepdims=True) / (rows * cols)
+        return _spectral_difference_adjoint(y) - mean @ self._mean_part.astype(y.dtype, copy=False)
+
+
+METAMER_CONDITION_LIMIT = 1e10
+"""Largest condition number of the smoothest-metamer system before it counts as singular."""
+
+
+def smoothest_metamer(colour: np.ndarray) -> np.ndarray:
+    """``R C`` (k × k): a spectrum → the smoothest spectrum of the same colour.
+
+    The smoothest spectrum is ``argmin ‖D_λ s‖²`` over s with ``C s = C x``: with N an
+    orthonormal basis of C's null space (the metamers' directions), ``s = x − N z`` and
+    ``z = (NᵀD_λᵀD_λN)⁻¹ NᵀD_λᵀD_λ x``. C is normalised first (its scale is arbitrary) and
+    its rank found by SVD; with as many channels as bands there are no metamers
+    (the identity).
+
+    Raises
+    ------
+    DataError
+        When a constant spectrum gives zero colour (no smoothest metamer exists).
+    """
+    c = np.asarray(colour, dtype=np.float64)
+    k = c.shape[1]
+    c = c / np.linalg.norm(c)
+    _, singular, vt = np.linalg.svd(c)
+    rank = int(np.sum(singular > 1e-10 * singular[0]))
+    null = vt[rank:].T  # (k, k − rank)
+    if null.shape[1] == 0:
+        return np.eye(k)
+    d = _spectral_difference_matrix(k)
+    dn = d @ null
+    gram = dn.T @ dn
+    if np.linalg.cond(gram) > METAMER_CONDITION_LIMIT:
+        raise DataError(
+            "the colour matrix gives a constant spectrum zero colour, so no smoothest metamer "
+            "exists; check the camera response over the bands"
+        )
+    return np.eye(k) - null @ np.linalg.solve(gram, dn.T @ d)
+
+
 def _spectral_difference_matrix(k: int) -> np.ndarray:
     """D_λ, the forward difference along k bands, as a (k−1, k) matrix."""
     return np.eye(k - 1, k, 1) - np.eye(k - 1, k)

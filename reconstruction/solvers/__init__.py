@@ -2,6 +2,7 @@
 
 from reconstruction.solvers.admm import (
     DEFAULT_RTOL,
+    SMOOTH_RTOL,
     Solution,
     SolveReport,
     absolute_tolerance,
@@ -12,6 +13,7 @@ from reconstruction.solvers.fourier import FourierSolver, mask_coefficients
 
 __all__ = [
     "DEFAULT_RTOL",
+    "SMOOTH_RTOL",
     "CGResult",
     "FourierSolver",
     "Solution",

@@ -34,38 +34,36 @@ import numpy as np
 
 from labkit.errors import DataError
 from reconstruction.operators import LinearOperator
-from reconstruction.prior_terms import GROUP_AXES, PriorTerm
+from reconstruction.prior_terms import GROUP_AXES
 from reconstruction.problem import Problem
 from reconstruction.solvers.active_set import PolishReport, polish, solve_periodic
 from reconstruction.solvers.cg import conjugate_gradient
 from reconstruction.solvers.fourier import FourierSolver
 
 DEFAULT_RTOL = 1e-4
-"""ε_rel when only non-negativity is split (L2-type priors). Objective above the optimum,
-measured on 128² patches with the pipeline's spectral smoothness (σ = 1e-3,
-:mod:`reconstruction.problem`): 7e-9–5e-5 (L2, Lap2); ≤ 1e-5 on 32² patches at w = 0.03.
-Without σ, at the DMC's weight (4.7e-4), 5e-4–1e-3 from :func:`initial_estimate`
-(``exact_nonneg`` gives the optimum, but that optimum is the poorer spectrum)."""
+"""ε_rel of the thesis' problem (σ = 0). Its non-negative optimum is degenerate (the
+smallest non-negative metamer, a poorer spectrum than ADMM's early stop) and ADMM
+approaches it slowly: at the DMC's weight (4.7e-4), 128² patches, L2/Lap2 stop 5e-4–1e-3
+above it (``exact_nonneg`` reaches it), L1/Lap1 0.01–1.2 %, and L1 with non-negativity is
+still 7e-3 above it after 1000 iterations, while every extra iteration moves the image
+towards that poorer spectrum (simulated ColorChecker, L1 at the DMC's 5.4e-4: spectral RMSE
+0.105 at 1e-4 in 38 s; at 1e-5 0.150, the median patch at the 1000-iteration limit)."""
 
-DEFAULT_RTOL_L1 = 1e-5
-"""ε_rel when an L1 term is split and the problem has spectral smoothness (σ > 0): ADMM's
-tail is slow with L1 terms, and at 1e-4 the residual test stops 8e-4–1.5e-3 above the
-optimum. At 1e-5, measured on 128² patches at σ = 1e-3, w = 6.3e-3 (the DMC's pick for L2
-there): 5.5e-5–6.8e-5 (L1, Lap1, with and without non-negativity; 400–670 iterations,
-8–13 s); w = 1e-3: 5e-5–8e-5; with the rig's Φ (64²): 2.4e-5.
-
-Without σ an L1 problem keeps :data:`DEFAULT_RTOL`: its optimum is as degenerate as the
-L2 one's (the smallest non-negative metamer) and ADMM does not reach it in the iteration
-limit whatever the test (L1 with non-negativity at w = 4.7e-4, 128²: 7e-3 above it after
-1000 iterations), while every extra iteration moves the image towards that poorer
-spectrum (simulated ColorChecker, L1 at the DMC's 5.4e-4: spectral RMSE 0.105 at 1e-4 in
-38 s; at 1e-5 0.150, the median patch at the 1000-iteration limit)."""
+SMOOTH_RTOL = 1e-5
+"""ε_rel with spectral smoothness (σ > 0, the default of
+:func:`~reconstruction.reconstruct.reconstruct`): the optimum is then well defined and the
+default solve reaches it. Objective above the optimum, 128² patches, σ = 1e-3, at
+w = 4.7e-4 / 6.3e-3 (the DMC's picks without and with σ), with non-negativity: L2 2e-6 /
+9e-7, Lap2 7e-6 / 4e-6, L2L2 1.5e-5 / 1.5e-6 (3–10 iterations; at 1e-4: up to 9.5e-5);
+L1, Lap1 with and without non-negativity at 6.3e-3: 5.3e-5–6.5e-5 (440–600 iterations; at
+1e-4: 8e-4–1.5e-3); with the rig's Φ (64², L1): 2.4e-5. On the simulated ColorChecker
+(L2, Φ) 4.5 s against 3.6 s at 1e-4, the same errors to 0.5 %."""
 
 
-def default_rtol(l1_split: bool, smoothness: float = 0.0) -> float:
-    """ε_rel of the default solve: :data:`DEFAULT_RTOL_L1` with an L1 split and σ > 0,
+def default_rtol(smoothness: float = 0.0) -> float:
+    """ε_rel of the default solve: :data:`SMOOTH_RTOL` with spectral smoothness σ > 0,
     else :data:`DEFAULT_RTOL`."""
-    return DEFAULT_RTOL_L1 if l1_split and smoothness > 0 else DEFAULT_RTOL
+    return SMOOTH_RTOL if smoothness > 0 else DEFAULT_RTOL
 
 
 MAX_PENALTY_UPDATES = 8
@@ -295,7 +293,7 @@ def initial_estimate(problem: Problem) -> np.ndarray:
     4.7 s.
     """
     formation = problem.formation
-    quadratic = [(2.0 * w, PriorTerm(t.operator, 2)) for w, t, _ in problem.penalties if w > 0]
+    quadratic = [(2.0 * w, t.quadratic()) for w, t, _ in problem.penalties if w > 0]
     solver = FourierSolver(
         formation.range_shape,
         formation.cfa,
@@ -353,7 +351,7 @@ def solve(
     """
     shape = problem.shape
     l1_splits = any(t.norm == 1 and w > 0 for w, t, _ in problem.penalties)
-    rtol = default_rtol(l1_splits, problem.smoothness) if rtol is None else float(rtol)
+    rtol = default_rtol(problem.smoothness) if rtol is None else float(rtol)
     if not (0 < rtol < 1):
         raise DataError(f"rtol must be in (0, 1), got {rtol}")
     atol = absolute_tolerance(problem.raw, rtol) if atol is None else float(atol)

@@ -29,7 +29,7 @@ import scipy.fft
 
 from labkit.cfa import channel_index, check_layout
 from labkit.errors import DataError
-from reconstruction.prior_terms import PriorTerm
+from reconstruction.prior_terms import Term
 
 _QUADS = ((0, 0), (0, 1), (1, 0), (1, 1))  # s = (s_y, s_x), index 2 s_y + s_x
 
@@ -110,7 +110,7 @@ class FourierSolver:
         (3, n) real colour matrix, or (rows, cols, 3, n) complex per-frequency matrices.
     data_weight : float
         α (2 for the objective ‖Ax − y‖²).
-    terms : sequence of (coefficient, PriorTerm)
+    terms : sequence of (coefficient, PriorTerm or SmoothnessTerm)
         c_t ≥ 0 and the term whose DᵀD enters.
     identity : float
         β ≥ 0 (ADMM penalty on x, and any ridge).
@@ -129,7 +129,7 @@ class FourierSolver:
         colour: np.ndarray,
         *,
         data_weight: float = 2.0,
-        terms: Sequence[tuple[float, PriorTerm]] = (),
+        terms: Sequence[tuple[float, Term]] = (),
         identity: float = 0.0,
     ) -> None:
         rows, cols = (int(v) for v in shape)
@@ -158,8 +158,8 @@ class FourierSolver:
             if coefficient < 0:
                 raise DataError(f"prior coefficient must be ≥ 0, got {coefficient}")
             if coefficient:
-                symbol = term.spatial_symbol(self.shape)
-                prior += coefficient * symbol[..., None, None] * term.spectral_matrix(n)
+                for symbol, matrix in term.fourier_pieces(self.shape, n):
+                    prior += coefficient * symbol[..., None, None] * matrix
         self._prior = to_quadruples(prior)[self._kept]  # (H, 4, n, n)
         self.identity = None
         self.set_identity(identity)

@@ -91,11 +91,12 @@ def inputs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 
 
 def test_smooth_scene_known_answer(inputs, tmp_path: Path, capsys) -> None:
-    """Fixed weight, no dispersion, exact L2 solve: band centres, shape, raw colour, log."""
+    """Fixed weight, no dispersion, the thesis' problem (σ = 0: the synthetic colours need
+    no smooth spectra), exact L2 solve: band centres, shape, raw colour, log."""
     out = tmp_path / "out"
     args = ["reconstruct", str(inputs["smooth"]), "--response", str(inputs["response"]),
             "--bands", BANDS, "--weights", "fixed:0.001", "--no-nonneg", "--patch-px", "32",
-            "--out", str(out)]  # fmt: skip
+            "--spectral-smoothness", "0", "--out", str(out)]  # fmt: skip
     assert main(args) == 0
     printed = capsys.readouterr().out
     assert "weights: 0.001 (fixed)" in printed
@@ -125,7 +126,7 @@ def test_smooth_scene_known_answer(inputs, tmp_path: Path, capsys) -> None:
     assert log["bands_nm"] == [400, 450, 500, 550, 600, 650, 700]
     assert log["patches"]["count"] == len(log["patch_records"]) == 6
     assert log["options"]["patch_px"] == 32 and log["options"]["nonneg"] is False
-    assert log["spectral_smoothness"] == 0.0  # off by default, as the thesis
+    assert log["spectral_smoothness"] == 0.0
 
     with Image.open(out / "preview.png") as preview:
         assert preview.size == (SHAPE[1], SHAPE[0]) and preview.mode == "RGB"
@@ -152,6 +153,24 @@ def test_flat_grey_with_rig_and_dispersion(
     log = json.loads((out / "log.json").read_text())
     assert log["patches"]["phi_skipped_flat"] + log["patches"]["phi_skipped_negligible"] == 6
     assert log["dispersion"]["variables"] == "xylambda"
+    assert log["spectral_smoothness"] == 1e-3  # the default with a spectral latent image
+
+
+def test_narrow_band_light_is_flagged(sim_rig_path: Path, tmp_path: Path, capsys) -> None:
+    """A flat green mosaic like the ColorChecker's through the rig's 550 nm filter (its
+    smooth fit misses it by 19 % at these bands): one warning line that names the fix, and
+    the log."""
+    raw = _write_raw(tmp_path / "green.exr", np.broadcast_to([0.057, 1.0, 0.088], (*SHAPE, 3)))
+    out = tmp_path / "out"
+    args = ["reconstruct", str(raw), "--rig", str(sim_rig_path), "--bands", BANDS, "--quiet",
+            "--weights", "fixed:0.01", "--patch-px", "32", "--out", str(out)]  # fmt: skip
+    assert main(args) == 0
+    captured = capsys.readouterr()
+    lines = [line for line in captured.out.splitlines() if "narrow-band light?" in line]
+    assert len(lines) == 1 and lines[0].startswith("warning: ")
+    assert "--spectral-smoothness 0" in lines[0] and "NarrowBandWarning" not in captured.err
+    log = json.loads((out / "log.json").read_text())
+    assert len(log["warnings"]) == 1 and "19 %" in log["warnings"][0]
 
 
 def test_cubic_interpolation_keeps_a_grey_scene_grey(
@@ -205,6 +224,7 @@ def test_colour_latent_writes_no_spectral_image(inputs, tmp_path: Path) -> None:
     np.testing.assert_allclose(
         _read_rgb_exr(out / "raw_colour.exr"), np.broadcast_to(GREY, (*SHAPE, 3)), rtol=1e-3
     )
+    assert json.loads((out / "log.json").read_text())["spectral_smoothness"] == 0.0
 
 
 def test_progress_bar_only_on_a_terminal(

@@ -12,8 +12,7 @@ from labkit.cfa import CFA_LAYOUTS
 from labkit.errors import DataError
 from reconstruction.image_formation import ImageFormation, build_formation
 from reconstruction.operators import dot_test
-from reconstruction.prior_terms import PRIORS
-from reconstruction.problem import SMOOTHNESS_TERM
+from reconstruction.prior_terms import PRIORS, PriorTerm, SmoothnessTerm
 from reconstruction.solvers.fourier import FourierSolver
 
 SHAPE = (40, 60)
@@ -46,15 +45,18 @@ def test_dispersion_samples_split_the_colour_matrix() -> None:
 
 
 @pytest.mark.parametrize("cfa", CFA_LAYOUTS)
-@pytest.mark.parametrize("prior", ["L2", "L2L2", "Lap2", "L2+smoothness"])
+@pytest.mark.parametrize("prior", ["L2", "L2L2", "Lap2", "L2+roughness", "L2+spectral"])
 def test_fourier_solver_is_exact(cfa: str, prior: str) -> None:
-    """(2AᵀA + Σ c DᵀD + βI) x = b is solved to a relative residual ≤ 1e-8 (the spectral
-    smoothness term ‖∇λ I‖² included)."""
+    """(2AᵀA + Σ c DᵀD + βI) x = b is solved to a relative residual ≤ 1e-8 (with the
+    spectral smoothness term ‖S I‖², whose DC differs from its other frequencies, and with
+    plain ‖∇λ I‖²)."""
     rng = np.random.default_rng(3)
     c = normalised_colour()
     a = ImageFormation((32, 48), cfa, c[None])
-    if prior == "L2+smoothness":
-        terms = [(0.3, PRIORS["L2"][0]), (0.05, SMOOTHNESS_TERM)]
+    if prior == "L2+roughness":
+        terms = [(0.3, PRIORS["L2"][0]), (0.05, SmoothnessTerm(c))]
+    elif prior == "L2+spectral":
+        terms = [(0.3, PRIORS["L2"][0]), (0.05, PriorTerm("spectral", 2))]
     else:
         terms = [(0.3, t) for t in PRIORS[prior]]
     solver = FourierSolver((32, 48), cfa, c, terms=terms, identity=1e-3)

@@ -16,6 +16,8 @@ from reconstruction.operators.priors import (
     Laplacian,
     SpectralDifference,
     SpectralGradient,
+    SpectralRoughness,
+    smoothest_metamer,
 )
 
 SHAPE = (5, 7)  # odd on purpose: the Bayer tiling is cropped
@@ -38,6 +40,7 @@ ALL_OPERATORS = (
     + _operators("periodic")
     + _operators("neumann")
     + [SpectralDifference((*SHAPE, BANDS))]
+    + [SpectralRoughness((*SHAPE, BANDS), np.arange(1.0, 1.0 + 3 * BANDS).reshape(3, BANDS))]
     + [
         Mosaic(SHAPE, cfa) @ SpectralToColour(SHAPE, np.arange(3 * BANDS).reshape(3, BANDS))
         for cfa in CFA_LAYOUTS
@@ -275,3 +278,61 @@ def test_fourier_symbols_match_direct_operators(rng):
     np.testing.assert_allclose((np.abs(s) ** 2).sum(axis=-1), s3, atol=1e-12)
     # explicit shape argument
     assert grad.fourier_symbol((3, 4)).shape == (3, 4, 2)
+
+
+# --- 6. spectral roughness (the smoothness term beyond the thesis) ---------------------
+
+
+def _rig_like_colour(k: int) -> np.ndarray:
+    """(3, k) colour matrix of three overlapping Gaussian channels (B, G, R order aside)."""
+    centres = np.linspace(0.0, 1.0, k)
+    peaks = np.array([0.8, 0.5, 0.2])
+    return np.exp(-0.5 * ((centres[None, :] - peaks[:, None]) / 0.18) ** 2)
+
+
+def test_smoothest_metamer_known_answers(rng):
+    """R C keeps every colour, is a projector, and no other metamer is smoother; with as
+    many channels as bands there are no metamers (the identity)."""
+    k = 7
+    c = _rig_like_colour(k)
+    rc = smoothest_metamer(c)
+    np.testing.assert_allclose(c @ rc, c, atol=1e-12)  # colour kept
+    np.testing.assert_allclose(rc @ rc, rc, atol=1e-12)  # a projector
+    np.testing.assert_allclose(smoothest_metamer(5.0 * c), rc, atol=1e-12)  # scale-free
+    d = np.diff(np.eye(k), axis=0)
+    null = np.linalg.svd(c)[2][3:].T
+    for _ in range(5):
+        s = rc @ rng.standard_normal(k)
+        other = s + null @ rng.standard_normal(k - 3)  # another spectrum of the same colour
+        np.testing.assert_allclose(c @ other, c @ s, atol=1e-12)
+        assert np.linalg.norm(d @ s) <= np.linalg.norm(d @ other)
+    # a colour matrix that only sees spectral differences: a constant spectrum is black
+    with pytest.raises(DataError, match="constant spectrum"):
+        smoothest_metamer(d[:3])
+    np.testing.assert_array_equal(smoothest_metamer(c[:, :3]), np.eye(3))
+
+
+def test_spectral_roughness_known_answers(rng):
+    """‖S x‖² = ‖D_λ(x − x̄)‖² + N‖D_λ P x̄‖² (the cross term sums to zero); a flat image
+    of the smoothest metamer of any colour has zero roughness; away from DC, S = D_λ."""
+    rows, cols, k = 6, 8, 7
+    c = _rig_like_colour(k)
+    op = SpectralRoughness((rows, cols, k), c)
+    x = rng.uniform(size=(rows, cols, k))
+    mean = x.mean(axis=(0, 1))
+    d = np.diff(np.eye(k), axis=0)
+    p = np.eye(k) - smoothest_metamer(c)
+    expected = np.sum(np.diff(x - mean, axis=2) ** 2) + rows * cols * np.sum((d @ p @ mean) ** 2)
+    assert np.sum(op.forward(x) ** 2) == pytest.approx(expected, rel=1e-12)
+    flat = np.broadcast_to(smoothest_metamer(c) @ rng.uniform(size=k), (rows, cols, k))
+    np.testing.assert_allclose(op.forward(flat), 0.0, atol=1e-13)
+    zero_mean = x - mean
+    np.testing.assert_allclose(op.forward(zero_mean), np.diff(zero_mean, axis=2), atol=1e-13)
+    # its Fourier pieces sum to SᵀS per frequency
+    spectrum = np.fft.fft2(x, axes=(0, 1))
+    normal = sum(
+        symbol[..., None] * (spectrum @ matrix.T)
+        for symbol, matrix in op.fourier_pieces((rows, cols))
+    )
+    via_fft = np.fft.ifft2(normal, axes=(0, 1)).real
+    np.testing.assert_allclose(via_fft, op.adjoint(op.forward(x)), atol=1e-12)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import warnings
 
 import numpy as np
 import pytest
@@ -15,7 +16,7 @@ from labkit.cfa import mosaic
 from labkit.errors import DataError
 from labkit.spectra import camera_response
 from reconstruction.image_formation import LatentSpace, build_formation
-from reconstruction.reconstruct import reconstruct
+from reconstruction.reconstruct import NarrowBandWarning, reconstruct
 
 RESPONSE_RGB = camera_response(RESPONSE)
 SHAPE = (40, 60)
@@ -68,7 +69,8 @@ def test_bad_input_is_refused_early(change: dict, message: str) -> None:
 
 
 def test_flat_scene_is_reproduced_and_skipped() -> None:
-    """A uniform grey mosaic: raw colour back to 1e-3, every patch flat, Φ skipped."""
+    """A uniform grey mosaic: raw colour back to 1e-3 (the smoothness term leaves a flat
+    patch's colour free), every patch flat, Φ skipped."""
     raw = grey_raw((64, 96))
     model = spectral_model(ConstantField((0.4, -0.3), per_nm=True), shape=(64, 96))
     result = reconstruct(
@@ -85,10 +87,27 @@ def test_flat_scene_is_reproduced_and_skipped() -> None:
     )
     assert result.spectral.min() >= 0
     summary = result.log["patches"]
-    assert result.log["rtol"] == 1e-4 and result.log["spectral_smoothness"] == 0.0  # defaults
+    assert result.log["rtol"] == 1e-5 and result.log["spectral_smoothness"] == 1e-3  # defaults
     assert summary["count"] == 6
     assert summary["phi_skipped_flat"] == 6
     assert all(r["iterations"] <= 3 for r in result.log["patch_records"])
+
+
+def test_narrow_band_light_draws_a_warning_with_spectral_smoothness() -> None:
+    """A flat mosaic of the colour of one basis band (559 nm; its smooth non-negative fit
+    misses it by 10 %) warns, names the misfit and the fix, and logs it; the thesis' problem
+    (σ = 0) and a grey scene (misfit 1 %) do not."""
+    space = LatentSpace.spectral(RESPONSE_RGB)
+    colour = space.colour_matrix()[:, 4]
+    settings = {"cfa": "GBRG", "response": RESPONSE_RGB, "weights": "fixed:0.01"}
+    narrow = grey_raw((32, 32), colour=colour / colour.max())
+    with pytest.warns(NarrowBandWarning, match=r"10 % away .* spectral_smoothness=0") as caught:
+        result = reconstruct(narrow, **settings)
+    assert len(caught) == 1 and result.log["warnings"] == [str(caught[0].message)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", NarrowBandWarning)
+        assert reconstruct(narrow, spectral_smoothness=0.0, **settings).log["warnings"] == []
+        assert reconstruct(grey_raw((32, 32)), **settings).log["warnings"] == []
 
 
 def test_spectral_smoothness_recovers_smooth_spectra_better() -> None:
@@ -119,11 +138,9 @@ def test_spectral_smoothness_recovers_smooth_spectra_better() -> None:
 
 
 @pytest.mark.parametrize(("smoothness", "expected"), [(0.0, 1e-4), (1e-3, 1e-5)])
-def test_l1_priors_get_a_tighter_default_tolerance_with_smoothness(
-    smoothness: float, expected: float
-) -> None:
-    """ADMM's default ε_rel: 1e-5 for an L1 prior with σ > 0 (within 1e-4 of the optimum),
-    1e-4 otherwise (an L2 prior keeps it at either σ); an explicit rtol wins."""
+def test_default_tolerance_is_tighter_with_smoothness(smoothness: float, expected: float) -> None:
+    """ADMM's default ε_rel: 1e-5 with σ > 0 (within 1e-4 of the optimum), 1e-4 for the
+    thesis' problem, whatever the prior; an explicit rtol wins."""
     settings = {"cfa": "GBRG", "response": RESPONSE_RGB, "weights": "fixed:0.01", "prior": "L1"}
     raw = grey_raw((32, 32))
     result = reconstruct(raw, spectral_smoothness=smoothness, **settings)
@@ -132,7 +149,7 @@ def test_l1_priors_get_a_tighter_default_tolerance_with_smoothness(
         "rtol"
     ] == pytest.approx(3e-4)
     l2 = reconstruct(raw, spectral_smoothness=smoothness, **{**settings, "prior": "L2"})
-    assert l2.log["rtol"] == 1e-4
+    assert l2.log["rtol"] == expected
 
 
 def test_noisy_flat_scene_is_still_taken_as_flat() -> None:
