@@ -51,8 +51,8 @@ from reconstruction.operators import (
     SpectralRoughness,
 )
 
-#: "spectral" (∇λ alone) is no prior of Table 3.1: it is the operator of the spectral
-#: smoothness term of :mod:`reconstruction.problem`.
+#: "spectral" (∇λ alone, at every spatial frequency) is no prior of Table 3.1; the spectral
+#: smoothness term of :mod:`reconstruction.problem` is :class:`SmoothnessTerm` instead.
 Difference = Literal["gradient", "spectral_gradient", "laplacian", "spectral"]
 
 
