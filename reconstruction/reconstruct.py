@@ -209,42 +209,39 @@ def check_dispersion_model(
     return model
 
 
-def smooth_mean_colour(raw: np.ndarray, cfa: str, colour: np.ndarray) -> tuple[np.ndarray, float]:
-    """(6.1): a smooth non-negative spectrum s with the image's mean colour, and its misfit.
-
-    Solves ``argmin_s ‖C s − c‖² + w‖∇λ s‖², s ≥ 0`` with c the mean raw colour (per CFA
-    channel) and w = :data:`REFERENCE_SMOOTHING`·‖C‖², by NNLS on the stacked system.
-    Returns s and ``‖C s − c‖ / ‖c‖`` (0 when c is black).
-    """
-    mean_colour = _mean_colour(raw, cfa)
-    n = colour.shape[1]
-    if n == 3 and np.allclose(colour, np.diag(np.diag(colour))):
-        s = np.maximum(mean_colour / np.diag(colour), 0.0)
-    else:
-        d = SpectralGradient((1, 1, n)).spectral_matrix
-        w = REFERENCE_SMOOTHING * float(np.sum(colour**2))
-        s, _ = nnls(
-            np.vstack([colour, np.sqrt(w) * d]), np.concatenate([mean_colour, np.zeros(n - 1)])
-        )
-    size = float(np.linalg.norm(mean_colour))
-    misfit = float(np.linalg.norm(colour @ s - mean_colour)) / size if size > 0 else 0.0
-    return s, misfit
-
-
-def _mean_colour(raw: np.ndarray, cfa: str) -> np.ndarray:
+def mean_colour(raw: np.ndarray, cfa: str) -> np.ndarray:
     """Mean raw value of each CFA channel (R, G, B)."""
     index = channel_index(cfa, raw.shape)
     return np.array([raw[index == c].mean() for c in range(3)])
 
 
-def reference_scale(raw: np.ndarray, cfa: str, colour: np.ndarray) -> np.ndarray:
-    """Per-channel scale r of §6.3: :func:`smooth_mean_colour`'s spectrum, scaled to mean 1
-    and floored at 1 % of its peak, so every channel keeps a positive scale."""
-    s, _ = smooth_mean_colour(raw, cfa, colour)
+def smooth_mean_colour(colour_mean: np.ndarray, colour: np.ndarray) -> tuple[np.ndarray, float]:
+    """(6.1): a smooth non-negative spectrum s with the image's mean colour, and its misfit.
+
+    Solves ``argmin_s ‖C s − c‖² + w‖∇λ s‖², s ≥ 0`` with c = `colour_mean` (the mean raw
+    colour, :func:`mean_colour`) and w = :data:`REFERENCE_SMOOTHING`·‖C‖², by NNLS on the
+    stacked system. Returns s and ``‖C s − c‖ / ‖c‖`` (0 when c is black).
+    """
     n = colour.shape[1]
-    if not np.any(s > 0):
-        return np.ones(n)
-    s = np.maximum(s, 0.01 * s.max())
+    if n == 3 and np.allclose(colour, np.diag(np.diag(colour))):
+        s = np.maximum(colour_mean / np.diag(colour), 0.0)
+    else:
+        d = SpectralGradient((1, 1, n)).spectral_matrix
+        w = REFERENCE_SMOOTHING * float(np.sum(colour**2))
+        s, _ = nnls(
+            np.vstack([colour, np.sqrt(w) * d]), np.concatenate([colour_mean, np.zeros(n - 1)])
+        )
+    size = float(np.linalg.norm(colour_mean))
+    misfit = float(np.linalg.norm(colour @ s - colour_mean)) / size if size > 0 else 0.0
+    return s, misfit
+
+
+def reference_scale(spectrum: np.ndarray) -> np.ndarray:
+    """Per-channel scale r of §6.3 from :func:`smooth_mean_colour`'s spectrum: scaled to
+    mean 1 and floored at 1 % of its peak, so every channel keeps a positive scale."""
+    if not np.any(spectrum > 0):
+        return np.ones(spectrum.size)
+    s = np.maximum(spectrum, 0.01 * spectrum.max())
     return s / s.mean()
 
 
@@ -460,13 +457,15 @@ def reconstruct(
         patch_px=patch_px, pad_px=pad_px, flat_threshold=flat_threshold, noise_sigma=noise
     )
     colour_gain = 1.0 / float(space.colour_matrix().sum(axis=1).max())
-    if reference == "mean-colour":
-        space = space.with_scale(reference_scale(y, cfa, colour_gain * space.colour_matrix()))
-    atol = absolute_tolerance(y, rtol)  # Algorithm 9 on the whole image
     notices = []
-    if smoothness > 0 and np.all(_mean_colour(y, cfa) > 0):  # else no colour to judge
-        _, misfit = smooth_mean_colour(y, cfa, colour_gain * space.colour_matrix())
-        if misfit > NARROW_BAND_MISFIT:
+    if reference == "mean-colour" or smoothness > 0:
+        # one fit of (6.1) serves both, on the colour matrix of spectra (before any scale)
+        colour_mean = mean_colour(y, cfa)
+        fit, misfit = smooth_mean_colour(colour_mean, colour_gain * space.colour_matrix())
+        if reference == "mean-colour":
+            space = space.with_scale(reference_scale(fit))
+        # a non-positive channel mean has no colour to judge
+        if smoothness > 0 and np.all(colour_mean > 0) and misfit > NARROW_BAND_MISFIT:
             notices.append(
                 f"the image's mean raw colour is {100 * misfit:.0f} % away from that of any "
                 "smooth non-negative spectrum: narrow-band light? The spectral smoothness "
@@ -474,6 +473,7 @@ def reconstruct(
                 "(--spectral-smoothness 0) for the thesis' problem"
             )
             warnings.warn(notices[-1], NarrowBandWarning, stacklevel=2)
+    atol = absolute_tolerance(y, rtol)  # Algorithm 9 on the whole image
 
     log: dict = {
         "warnings": notices,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from _problems import normalised_colour
 
 from labkit.cfa import CFA_LAYOUTS, mosaic
 from labkit.errors import DataError
@@ -283,18 +284,11 @@ def test_fourier_symbols_match_direct_operators(rng):
 # --- 6. spectral roughness (the smoothness term beyond the thesis) ---------------------
 
 
-def _rig_like_colour(k: int) -> np.ndarray:
-    """(3, k) colour matrix of three overlapping Gaussian channels (B, G, R order aside)."""
-    centres = np.linspace(0.0, 1.0, k)
-    peaks = np.array([0.8, 0.5, 0.2])
-    return np.exp(-0.5 * ((centres[None, :] - peaks[:, None]) / 0.18) ** 2)
-
-
 def test_smoothest_metamer_known_answers(rng):
     """R C keeps every colour, is a projector, and no other metamer is smoother; with as
     many channels as bands there are no metamers (the identity)."""
-    k = 7
-    c = _rig_like_colour(k)
+    c = normalised_colour()  # the rig's camera over its bands
+    k = c.shape[1]
     rc = smoothest_metamer(c)
     np.testing.assert_allclose(c @ rc, c, atol=1e-12)  # colour kept
     np.testing.assert_allclose(rc @ rc, rc, atol=1e-12)  # a projector
@@ -315,8 +309,8 @@ def test_smoothest_metamer_known_answers(rng):
 def test_spectral_roughness_known_answers(rng):
     """‖S x‖² = ‖D_λ(x − x̄)‖² + N‖D_λ P x̄‖² (the cross term sums to zero); a flat image
     of the smoothest metamer of any colour has zero roughness; away from DC, S = D_λ."""
-    rows, cols, k = 6, 8, 7
-    c = _rig_like_colour(k)
+    c = normalised_colour()
+    rows, cols, k = 6, 8, c.shape[1]
     op = SpectralRoughness((rows, cols, k), c)
     x = rng.uniform(size=(rows, cols, k))
     mean = x.mean(axis=(0, 1))
