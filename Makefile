@@ -2,6 +2,7 @@
 #   make demo   install everything, then run the main job on the simulated rig
 #   make test   install everything, then run the test suite
 # `make bench` runs the benchmarks and the slow tests.
+# `make lock` refreshes requirements.lock (uv pip compile), the pins that both install.
 
 PYTHON   ?= python3
 VENV     ?= .venv
@@ -11,8 +12,11 @@ STAMP    := $(VENV)/.installed
 DEMO_OUT ?= demo-out
 BENCH_OUT?= bench-out
 PYTEST_ARGS ?=
+LOCK     := requirements.lock
+UV       := uv==0.13.9
+LOCK_FLAGS ?= --upgrade
 
-.PHONY: demo test bench lint system-deps venv clean
+.PHONY: demo test bench lint lock system-deps venv clean
 
 demo: venv
 	$(VENV)/bin/labkit demo --out $(DEMO_OUT)
@@ -49,11 +53,22 @@ system-deps:
 
 venv: $(STAMP)
 
-$(STAMP): pyproject.toml | system-deps
+# The package's own dependencies are ranges (pyproject.toml); what is installed here is
+# pinned by the lock, so that every machine tests the same versions.
+$(STAMP): pyproject.toml $(LOCK) | system-deps
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e ".[gige,genicam,dev]"
+	$(PY) -m pip install --quiet -c $(LOCK) -e ".[gige,genicam,dev]"
 	@touch $(STAMP)
+
+# Newest versions within pyproject.toml's ranges, for every platform and Python ≥ 3.11
+# (`make lock LOCK_FLAGS=` keeps the current pins and only adds what is new).
+lock:
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet "$(UV)"
+	$(VENV)/bin/uv pip compile pyproject.toml --extra gige --extra genicam --extra dev \
+	  --universal --python-version 3.11 --custom-compile-command "make lock" \
+	  --quiet $(LOCK_FLAGS) -o $(LOCK)
 
 clean:
 	rm -rf $(VENV) $(DEMO_OUT) $(BENCH_OUT) .pytest_cache .ruff_cache

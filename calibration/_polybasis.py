@@ -46,7 +46,7 @@ factorisation breaks down, the candidate is solved exactly by QR of its training
 instead, and skipped when that design is numerically singular or has more columns than
 training rows. Validation errors come from the validation Gram matrix
 (``‖y‖² − 2 cᵀXᵀy + cᵀXᵀXc``), or directly from the residuals where that expression would
-lose precision. BLAS runs single-threaded meanwhile (:func:`blas_threads`).
+lose precision. BLAS runs at labkit's fixed thread count (:mod:`labkit.blas_threads`).
 
 Measured (8246 keypoints, 7 bands, degrees 0…12 × 0…5, 5 validation bands × 10 folds =
 50 splits, 78 candidates): 1.3–1.5 s on a 2-core machine, with another process loading
@@ -55,15 +55,14 @@ both cores.
 
 from __future__ import annotations
 
-import contextlib
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from scipy.linalg import lapack
-from threadpoolctl import threadpool_limits
 
+from labkit.blas_threads import fixed_blas_threads
 from labkit.errors import DataError
 
 #: Default refusal threshold for the 2-norm condition number of a design matrix.
@@ -77,21 +76,6 @@ GRAM_CONDITION_LIMIT = 1e5
 _DIRECT_RESIDUAL_FRACTION = 1e-6
 #: Rows per chunk when evaluating a design matrix over many points.
 CHUNK_ROWS = 1 << 16
-
-
-# -- BLAS threads -------------------------------------------------------------------------
-@contextlib.contextmanager
-def blas_threads(count: int = 1) -> Iterator[None]:
-    """Limit the BLAS libraries to `count` threads inside the block (restored afterwards).
-
-    Cross-validation makes thousands of BLAS/LAPACK calls on matrices of a few hundred
-    rows; multi-threaded OpenBLAS gains nothing there and, when other processes compete
-    for the cores, its synchronisation made model selection 15× slower (measured: 44 s
-    instead of 2.5 s for 8000 keypoints on a loaded 2-core machine). The limit is
-    process-wide while the block runs (threadpoolctl).
-    """
-    with threadpool_limits(limits=count, user_api="blas"):
-        yield
 
 
 # -- basis ------------------------------------------------------------------------------
@@ -194,6 +178,7 @@ def whitening(xy: np.ndarray, *, what: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 # -- least squares ----------------------------------------------------------------------
+@fixed_blas_threads
 def solve_lstsq(
     X: np.ndarray, Y: np.ndarray, *, max_condition: float = MAX_CONDITION, what: str = "fit"
 ) -> tuple[np.ndarray, float]:
@@ -209,9 +194,8 @@ def solve_lstsq(
     n, m = X.shape
     if n < m:
         raise DataError(f"{what}: {n} data points cannot determine {m} coefficients")
-    with blas_threads(1):
-        q, r = np.linalg.qr(X)
-        qty = q.T @ Y
+    q, r = np.linalg.qr(X)
+    qty = q.T @ Y
     cond = condition_number_triangular(r)
     if not cond <= max_condition:
         raise DataError(
@@ -264,6 +248,7 @@ class CVResult:
         return mean, std
 
 
+@fixed_blas_threads
 def cross_validate(
     X: np.ndarray,
     Y: np.ndarray,
@@ -299,27 +284,24 @@ def cross_validate(
     Y = np.asarray(Y, dtype=np.float64).reshape(len(X), -1)
     n_sizes = max(len(sizes) for _, sizes in groups)
     result = CVResult(np.full((len(splits), len(groups), n_sizes), np.nan))
-    with blas_threads(1):
-        gram = X.T @ X
-        moment = X.T @ Y
-        part_rows = [np.asarray(p, dtype=np.intp) for p in parts]
-        part_stats = []
-        for rows in part_rows:
-            xp, yp = X[rows], Y[rows]
-            part_stats.append((xp.T @ xp, xp.T @ yp, float(np.sum(yp * yp))))
-        for s, members in enumerate(splits):
-            valid = np.concatenate([part_rows[i] for i in members])
-            gram_v = sum(part_stats[i][0] for i in members)
-            moment_v = sum(part_stats[i][1] for i in members)
-            sum_sq_v = sum(part_stats[i][2] for i in members)
-            split = _Split(
-                X, Y, valid, gram - gram_v, moment - moment_v, gram_v, moment_v, sum_sq_v
-            )
-            for g, (cols, sizes) in enumerate(groups):
-                _validate_group(result, split, s, g, np.asarray(cols, np.intp), sizes,
-                                max_condition)  # fmt: skip
-            if progress is not None:
-                progress(s + 1, len(splits))
+    gram = X.T @ X
+    moment = X.T @ Y
+    part_rows = [np.asarray(p, dtype=np.intp) for p in parts]
+    part_stats = []
+    for rows in part_rows:
+        xp, yp = X[rows], Y[rows]
+        part_stats.append((xp.T @ xp, xp.T @ yp, float(np.sum(yp * yp))))
+    for s, members in enumerate(splits):
+        valid = np.concatenate([part_rows[i] for i in members])
+        gram_v = sum(part_stats[i][0] for i in members)
+        moment_v = sum(part_stats[i][1] for i in members)
+        sum_sq_v = sum(part_stats[i][2] for i in members)
+        split = _Split(X, Y, valid, gram - gram_v, moment - moment_v, gram_v, moment_v, sum_sq_v)
+        for g, (cols, sizes) in enumerate(groups):
+            _validate_group(result, split, s, g, np.asarray(cols, np.intp), sizes,
+                            max_condition)  # fmt: skip
+        if progress is not None:
+            progress(s + 1, len(splits))
     for g, i in result.skipped:
         result.errors[:, g, i] = np.nan
     return result

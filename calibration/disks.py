@@ -53,6 +53,7 @@ from scipy.spatial import cKDTree
 
 from calibration._hdr_inputs import source_of
 from calibration.keypoints import DispersionKeypoints
+from labkit.blas_threads import fixed_blas_threads
 from labkit.cfa import CHANNELS, channel_index, check_layout
 from labkit.errors import DataError
 from labkit.io.exr import RawImage
@@ -279,6 +280,7 @@ def _no_disks(name: str, why: str) -> DataError:
     )
 
 
+@fixed_blas_threads
 def detect_disks(
     raw: np.ndarray, *, cfa: str, name: str = "image", min_area_px: float = 12.0
 ) -> DiskCandidates:
@@ -697,6 +699,7 @@ def _refine(task: _Task, options: _Options) -> _Outcome:
     return _Outcome(task.candidate, "", centres, quads, widths, residuals)
 
 
+@fixed_blas_threads
 def _refine_chunk(tasks: list[_Task], options: _Options) -> list[_Outcome]:
     """Refine a chunk of disks (the unit of work of the process pool)."""
     return [_refine(task, options) for task in tasks]
@@ -808,6 +811,7 @@ def _maybe_pool(workers: int) -> Iterator[Executor | None]:
         pool.shutdown(wait=True, cancel_futures=True)
 
 
+@fixed_blas_threads
 def fit_disks(
     raw: np.ndarray,
     *,
@@ -1088,6 +1092,7 @@ def _start_image(
     return _start(raw, layout, candidates, per_channel, where, _EDGE_WIDTH_PX, pool, workers)
 
 
+@fixed_blas_threads
 def disk_keypoints(
     images: Sequence[RawImage],
     *,
@@ -1212,6 +1217,7 @@ def disk_keypoints(
     )
 
 
+@fixed_blas_threads
 def channel_disk_keypoints(image: RawImage, *, workers: int | None = None) -> DispersionKeypoints:
     """Colour-channel keypoints (R and B relative to G) from one unfiltered disk image.
 

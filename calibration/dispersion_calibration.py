@@ -25,6 +25,7 @@ from calibration._hdr_inputs import source_of
 from calibration.bands import FilterBand
 from calibration.dispersion_model import DispersionModel
 from calibration.keypoints import DispersionKeypoints
+from labkit.blas_threads import fixed_blas_threads
 from labkit.errors import DataError
 from labkit.io.exr import RawImage
 
@@ -59,6 +60,7 @@ class DispersionCalibration:
     warnings: list[str] = field(default_factory=list)
 
 
+@fixed_blas_threads
 def calibrate_dispersion(
     images: Sequence[RawImage],
     *,

@@ -25,6 +25,7 @@ import numpy as np
 
 from calibration._hdr_inputs import check_consistent, source_of
 from calibration.sensitivity import ChannelSensitivity
+from labkit.blas_threads import fixed_blas_threads
 from labkit.cfa import channel_index, check_layout, mosaic
 from labkit.errors import DataError
 from labkit.io.exr import RawImage, SpectralImage, write_raw_exr, write_spectral_exr
@@ -84,6 +85,7 @@ def green_bilinear(raw: np.ndarray, layout: str) -> np.ndarray:
     return np.where(green, raw, neighbours)
 
 
+@fixed_blas_threads
 def synthesize_multispectral(
     images: Sequence[RawImage], sensitivity: ChannelSensitivity
 ) -> Synthesis:

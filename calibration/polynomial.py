@@ -56,6 +56,7 @@ from calibration.dispersion_model import (
     register_field,
 )
 from calibration.keypoints import DispersionKeypoints
+from labkit.blas_threads import fixed_blas_threads
 from labkit.errors import ConfigError, DataError
 
 #: Largest spatial degree the thesis considers.
@@ -238,6 +239,7 @@ class _Fit:
     report: dict[str, Any]
 
 
+@fixed_blas_threads
 def fit_polynomial_model(
     keypoints: DispersionKeypoints,
     *,

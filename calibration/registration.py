@@ -56,6 +56,7 @@ from scipy import ndimage
 from calibration._hdr_inputs import check_consistent, source_of
 from calibration.keypoints import DispersionKeypoints
 from calibration.multispectral import green_bilinear
+from labkit.blas_threads import fixed_blas_threads
 from labkit.errors import DataError
 from labkit.io.exr import RawImage
 from labkit.io.preview import demosaic_bilinear
@@ -123,6 +124,7 @@ class PatchShifts:
         return len(self) - self.n_accepted
 
 
+@fixed_blas_threads
 def patch_shifts(
     reference: np.ndarray,
     moving: np.ndarray,
@@ -243,6 +245,7 @@ def patch_shifts(
     )
 
 
+@fixed_blas_threads
 def registration_keypoints(
     images: Sequence[RawImage],
     *,
@@ -368,6 +371,7 @@ def registration_keypoints(
     )
 
 
+@fixed_blas_threads
 def channel_registration_keypoints(
     image: RawImage,
     *,

@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 
 from calibration._hdr_inputs import source_of
+from labkit.blas_threads import fixed_blas_threads
 from labkit.cfa import channel_index
 from labkit.errors import ConfigError, DataError
 from labkit.fitting import principal_slope
@@ -238,6 +239,7 @@ class ChannelSensitivity:
 # -- Algorithm 12 ---------------------------------------------------------------------------
 
 
+@fixed_blas_threads
 def channel_sensitivity(
     images: Sequence[RawImage],
     *,

@@ -121,6 +121,7 @@ from calibration.dispersion_model import (
     register_field,
 )
 from calibration.keypoints import DispersionKeypoints
+from labkit.blas_threads import fixed_blas_threads
 from labkit.errors import ConfigError, DataError
 
 #: Kernel names written to model files, by input dimension.
@@ -319,6 +320,7 @@ class SplineField:
 
 
 # -- GCV ---------------------------------------------------------------------------------
+@fixed_blas_threads
 def gcv_grid_search(
     objective: Callable[[float], float],
     *,
@@ -542,6 +544,7 @@ def _reduce(
 
 
 # -- the fitter --------------------------------------------------------------------------
+@fixed_blas_threads
 def fit_spline_model(
     keypoints: DispersionKeypoints,
     *,

@@ -36,6 +36,7 @@ import numpy as np
 import yaml
 
 from calibration import _polybasis as pb
+from labkit.blas_threads import fixed_blas_threads
 from labkit.cfa import CHANNELS, channel_index, check_layout
 from labkit.errors import ConfigError, DataError
 from labkit.io.atomic import write_text_atomic
@@ -313,6 +314,7 @@ class VignettingModel:
         )
 
 
+@fixed_blas_threads
 def fit_vignetting(
     raw: np.ndarray,
     *,

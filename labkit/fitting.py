@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from labkit.blas_threads import fixed_blas_threads
 from labkit.errors import DataError
 
 
@@ -41,6 +42,7 @@ class SlopeFit:
     explained: float
 
 
+@fixed_blas_threads
 def principal_slope(x: np.ndarray, y: np.ndarray, *, min_count: int = 2) -> SlopeFit:
     """Slope of the line through the origin along the first principal component of (x, y).
 

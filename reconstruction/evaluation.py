@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from calibration.dispersion_model import DispersionModel
+from labkit.blas_threads import fixed_blas_threads
 from labkit.errors import DataError
 from reconstruction.baselines import BASELINES, baseline
 from reconstruction.metrics import ColourErrors, SpectralErrors, colour_errors, spectral_errors
@@ -108,6 +109,7 @@ class Evaluation:
         return header, rows
 
 
+@fixed_blas_threads
 def baseline_images(
     raw: np.ndarray,
     *,
@@ -151,6 +153,7 @@ def baseline_images(
     return images, seconds
 
 
+@fixed_blas_threads
 def evaluate(
     raw: np.ndarray,
     images: Mapping[str, np.ndarray],

@@ -44,6 +44,7 @@ from typing import Any
 
 import numpy as np
 
+from labkit.blas_threads import fixed_blas_threads
 from labkit.cfa import CHANNELS
 from labkit.errors import DataError
 
@@ -177,6 +178,7 @@ class ColourErrors:
 # -- registration ---------------------------------------------------------------------
 
 
+@fixed_blas_threads
 def registration_scale(
     truth: np.ndarray, estimate: np.ndarray, *, weights: np.ndarray | None = None
 ) -> np.ndarray:
@@ -260,6 +262,7 @@ def patch_weights(labels: np.ndarray) -> np.ndarray:
 # -- spectral metrics ------------------------------------------------------------------
 
 
+@fixed_blas_threads
 def spectral_errors(
     truth: np.ndarray,
     estimate: np.ndarray,
@@ -384,6 +387,7 @@ def spectral_errors(
 # -- colour metrics --------------------------------------------------------------------
 
 
+@fixed_blas_threads
 def colour_errors(
     truth: np.ndarray,
     estimate: np.ndarray,

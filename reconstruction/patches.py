@@ -41,9 +41,9 @@ import dask
 import dask.array as da
 import dask.callbacks
 import numpy as np
-from threadpoolctl import threadpool_info, threadpool_limits
 
 from calibration.dispersion_model import DispersionModel
+from labkit.blas_threads import fixed_blas_threads
 from labkit.errors import DataError
 from reconstruction.image_formation import LatentSpace, build_formation
 from reconstruction.prior_terms import PriorTerm
@@ -190,6 +190,7 @@ def max_dispersion(
     return longest
 
 
+@fixed_blas_threads
 def solve_patch(
     raw: np.ndarray,
     *,
@@ -259,27 +260,6 @@ def solve_patch(
     return solution.latent, record
 
 
-_blas_checked = False
-
-
-def _pin_blas_to_one_thread() -> None:
-    """BLAS on one thread in this process, for good unless it already is.
-
-    Each patch is one thread's work, so BLAS' own threads only oversubscribe the cores.
-    The limit is set once per process, not around each solve: a limit that every Dask
-    thread sets and restores around its own solve races (one thread restores the default
-    while another solves), and BLAS then sums in a different order from run to run,
-    which moved ADMM's stopping iteration on a patch (115 against 124) and its image by
-    1.5e-3. The local schedulers already run under :func:`_compute`'s limit, so only
-    worker processes (``processes``, a cluster) are changed for good.
-    """
-    global _blas_checked
-    if not _blas_checked:
-        if any(i["num_threads"] != 1 for i in threadpool_info() if i["user_api"] == "blas"):
-            threadpool_limits(limits=1, user_api="blas")
-        _blas_checked = True
-
-
 def _block(
     block: np.ndarray,
     *,
@@ -296,7 +276,6 @@ def _block(
     right = pad if j < counts[1] - 1 else 0
     # every extended block reaches pad_px beyond its chunk's image pixels
     origin = (int(core_starts[0][i]) - pad, int(core_starts[1][j]) - pad)
-    _pin_blas_to_one_thread()
     latent, record = solve_patch(block, origin=origin, **solve_kwargs)
     core = latent[top : block.shape[0] - bottom, left : block.shape[1] - right]
     info = np.zeros(core.shape[:2])
@@ -304,6 +283,7 @@ def _block(
     return np.concatenate([core, info[..., None]], axis=2)
 
 
+@fixed_blas_threads
 def reconstruct_patches(
     raw: np.ndarray,
     *,
@@ -412,11 +392,7 @@ def _compute(
             f"unknown scheduler {scheduler!r}; use threads, processes, sync, tcp://host:port "
             "or a dask.distributed.Client"
         )
-    with (
-        dask.config.set(scheduler=name),
-        threadpool_limits(limits=1, user_api="blas"),
-        contextlib.ExitStack() as stack,
-    ):
+    with dask.config.set(scheduler=name), contextlib.ExitStack() as stack:
         if progress:
             stack.enter_context(_PatchProgress(progress, total))
         return result.compute()

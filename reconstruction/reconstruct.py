@@ -21,6 +21,7 @@ from scipy.optimize import nnls
 
 from calibration.dispersion_model import DispersionModel, load_dispersion_model
 from calibration.warp import correct_channels, correct_spectral
+from labkit.blas_threads import fixed_blas_threads
 from labkit.cfa import channel_index, check_layout
 from labkit.errors import DataError
 from labkit.spectra import Spectra
@@ -258,6 +259,7 @@ def representative_patches(raw: np.ndarray, size: int, count: int) -> list[tuple
     return [(r, c) for _, r, c in candidates[:count]]
 
 
+@fixed_blas_threads
 def reconstruct(
     raw: np.ndarray,
     *,

@@ -49,6 +49,7 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
+from labkit.blas_threads import fixed_blas_threads
 from labkit.cfa import CHANNELS, channel_index, check_layout
 from labkit.errors import DataError
 from reconstruction.metrics import ColourErrors, colour_errors, patch_weights
@@ -130,6 +131,7 @@ class ResidualAberration:
         }
 
 
+@fixed_blas_threads
 def residual_aberration(
     estimate: np.ndarray,
     raw: np.ndarray,

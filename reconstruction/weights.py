@@ -42,6 +42,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from calibration.multispectral import green_bilinear
+from labkit.blas_threads import fixed_blas_threads
 from labkit.errors import DataError
 from reconstruction.baselines import BASELINES
 from reconstruction.problem import Problem
@@ -179,6 +180,7 @@ class _Evaluator:
         return float(np.mean(values))
 
 
+@fixed_blas_threads
 def select_weights(
     problems: Sequence[Problem],
     *,

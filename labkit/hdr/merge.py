@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
+from labkit.blas_threads import fixed_blas_threads
 from labkit.cfa import channel_index, check_layout
 from labkit.errors import DataError
 from labkit.hdr.noise import NoiseEstimator, NoiseModel
@@ -220,6 +221,7 @@ class HDRResult:
 DarkSource = Mapping[float, DarkFrame] | Callable[[float], DarkFrame]
 
 
+@fixed_blas_threads
 def merge_exposures(
     exposures: Sequence[ExposureInput],
     darks: DarkSource,

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from labkit.blas_threads import fixed_blas_threads
 from labkit.errors import DataError
 from labkit.fitting import principal_slope
 
@@ -56,6 +57,7 @@ class PairFactor:
         return self.ratio / self.nominal - 1.0
 
 
+@fixed_blas_threads
 def fit_pair_factor(
     longer: np.ndarray,
     shorter: np.ndarray,

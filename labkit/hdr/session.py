@@ -25,6 +25,7 @@ import numpy as np
 import yaml
 
 import labkit
+from labkit.blas_threads import fixed_blas_threads
 from labkit.cfa import layout_from_pixel_format, pixel_format_bits
 from labkit.errors import DataError
 from labkit.frame import DARK, exposure_label
@@ -187,6 +188,7 @@ def plan_hdr(
     return HDRPlan(folder, jobs, darks, cfa, shape, _levels(records, folder), no_dark)
 
 
+@fixed_blas_threads
 def run_hdr(
     session_dir: str | Path,
     out_dir: str | Path,

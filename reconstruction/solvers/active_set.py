@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg
 
+from labkit.blas_threads import fixed_blas_threads
 from reconstruction.problem import Problem
 from reconstruction.solvers.cg import conjugate_gradient
 from reconstruction.solvers.fourier import FourierSolver
@@ -153,6 +154,7 @@ class _Capacitance:
         return z
 
 
+@fixed_blas_threads
 def polish(
     problem: Problem,
     x_start: np.ndarray,
@@ -268,6 +270,7 @@ def _most_negative(x: np.ndarray, candidates: np.ndarray, count: int) -> np.ndar
     return chosen.reshape(x.shape)
 
 
+@fixed_blas_threads
 def solve_periodic(
     problem: Problem, solver: FourierSolver, *, max_rounds: int = MAX_PERIODIC_ROUNDS
 ) -> tuple[np.ndarray, PolishReport]:

@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from labkit.blas_threads import fixed_blas_threads
 from labkit.errors import DataError
 from reconstruction.operators import LinearOperator
 from reconstruction.prior_terms import GROUP_AXES
@@ -280,6 +281,7 @@ def absolute_tolerance(raw: np.ndarray, rtol: float, q_max: float = 1.0) -> floa
     return float(rtol * max(float(np.median(raw)), 1e-12) / q_max)
 
 
+@fixed_blas_threads
 def initial_estimate(problem: Problem) -> np.ndarray:
     """A start for ADMM: one FFT solve with Φ as mean translations, priors made quadratic.
 
@@ -305,6 +307,7 @@ def initial_estimate(problem: Problem) -> np.ndarray:
     return np.maximum(x, 0.0) if problem.nonneg else x
 
 
+@fixed_blas_threads
 def solve(
     problem: Problem,
     *,
