@@ -2,12 +2,12 @@
 
 OpenBLAS (and MKL) split a product or a factorisation differently over different thread
 counts, so the last bits of a result depend on ``OPENBLAS_NUM_THREADS`` /
-``OMP_NUM_THREADS`` and on the number of cores. An iterative method amplifies those bits:
-an iterative method can amplify them into a different stopping iteration and a visibly
-different result. So every public numerical entry point of labkit (solvers, weight selection,
-reconstruction, calibration fits, the HDR merge) runs its BLAS work at
-:data:`BLAS_THREADS` threads, set with threadpoolctl on entry and restored on exit;
-the same inputs then give bit-identical results under any BLAS setting of the caller.
+``OMP_NUM_THREADS`` and on the number of cores, and an iterative method can amplify them
+into a different stopping iteration and a visibly different result. So every public
+numerical entry point of labkit (solvers, weight selection, reconstruction, calibration
+fits, the HDR merge) runs its BLAS work at :data:`BLAS_THREADS` threads, set with
+threadpoolctl on entry and restored on exit; the same inputs then give bit-identical
+results under any BLAS setting of the caller.
 
 Parallelism comes from labkit's own workers instead (Dask patches, process pools), whose
 BLAS calls would only oversubscribe the cores if BLAS threaded too.

@@ -72,8 +72,8 @@ def test_the_limit_applies_inside_and_the_callers_setting_comes_back() -> None:
         with library_blas_threads():
             assert blas_counts() == [BLAS_THREADS] * len(before)
             with library_blas_threads():
-                pass
-            assert blas_counts() == [BLAS_THREADS] * len(before)
+                assert blas_counts() == [BLAS_THREADS] * len(before)
+            assert blas_counts() == [BLAS_THREADS] * len(before)  # the inner exit kept it
         assert blas_counts() == before
 
 

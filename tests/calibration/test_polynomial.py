@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from threadpoolctl import threadpool_limits
 
 from calibration import _polybasis as pb
 from calibration._normalise import Normaliser
@@ -498,8 +499,6 @@ def test_one_standard_error_rule() -> None:
 
 def test_fit_is_bit_identical_under_one_and_two_blas_threads() -> None:
     """The caller's BLAS thread count does not reach the fit (labkit.blas_threads)."""
-    from threadpoolctl import threadpool_limits
-
     keypoints = spectral_keypoints(pitch=128)
     fits = []
     for count in (1, 2):
