@@ -15,6 +15,7 @@ from labkit.bench.harness import (
 from labkit.bench.hdr import bench_hdr
 from labkit.bench.reconstruct import bench_reconstruct
 from labkit.bench.sim import bench_sim
+from labkit.bench.solver import bench_solver
 
 #: Stage name → benchmark function (rig path, repeats[, out][, full]) → (cases, notes); the
 #: notes (sentences, :class:`Plot`, :class:`Table`) go under the stage's heading.
@@ -24,6 +25,7 @@ BENCHMARKS = {
     "hdr": bench_hdr,
     "calibrate": bench_calibrate,
     "reconstruct": bench_reconstruct,
+    "solver": bench_solver,
 }
 
 __all__ = [
@@ -36,6 +38,7 @@ __all__ = [
     "bench_hdr",
     "bench_reconstruct",
     "bench_sim",
+    "bench_solver",
     "fit_exponent",
     "machine_info",
     "measure",
