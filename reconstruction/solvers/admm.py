@@ -19,12 +19,10 @@ the test measured CG's error, and when it fired depended on rounding.
 
 Convergence is Algorithms 7–8 (primal and dual residual of every split against
 ``ε_abs √M + ε_rel ·`` the matching norm), with ε_abs from Algorithm 9
-(``ε_rel · median(y) / q_max``; q_max = 1 after normalisation), and with spectral
-smoothness an objective that has settled over the last iterations (:data:`STALL_WINDOW`).
-Additions to the thesis, both from Boyd et al. §3.4: over-relaxation (α = 1.6) and
-residual balancing (ρ_t is doubled or halved when one residual exceeds the other ten-fold;
-each change costs a re-inversion of the FFT blocks, so at most :data:`MAX_PENALTY_UPDATES`
-are made). A third
+(``ε_rel · median(y) / q_max``; q_max = 1 after normalisation). Additions to the thesis,
+both from Boyd et al. §3.4: over-relaxation (α = 1.6) and residual balancing (ρ_t is
+doubled or halved when one residual exceeds the other ten-fold; each change costs a
+re-inversion of the FFT blocks, so at most :data:`MAX_PENALTY_UPDATES` are made). A third
 addition: type-II Anderson acceleration of the (z, u) iteration (memory
 :data:`ANDERSON_MEMORY`, safeguarded), which cuts the iterations to a tight tolerance about
 sevenfold on textured patches at the small weights the DMC criterion picks.
@@ -86,14 +84,6 @@ CG_FORCING = 0.1
 (Σ_t ρ_t‖r_t‖ + ‖s_t‖, gradient units) and the smallest dual tolerance: an I-update less
 exact than the test that judges it makes that test measure CG's error."""
 CG_RTOL_FLOOR = 1e-13
-STALL_WINDOW = 5
-"""With spectral smoothness (σ > 0) the residual test must also find the objective settled:
-from the first iteration that passes it on, the objective is recorded, and ADMM stops when
-the test passes and the last (up to) this many values lie within :data:`STALL_FACTOR` ·
-ε_rel of the newest. Small residuals alone let the iterate stop while still drifting along
-a flat valley of the objective (README, reproducible solves). Not at σ = 0,
-whose early stop is kept on purpose (:data:`DEFAULT_RTOL`)."""
-STALL_FACTOR = 0.5
 """Tightest relative CG tolerance asked for (below it, float64 rounding of K x)."""
 _BALANCE, _FACTOR = 10.0, 2.0
 
@@ -427,8 +417,6 @@ def solve(
         return _finish(problem, x, report, step)
 
     sqrt_m = np.sqrt(x.size)
-    stall_window = STALL_WINDOW if problem.smoothness > 0 else 0
-    recent: list[float] = []
     cg_atol = np.inf
     updates = 0
     anderson = _Anderson(ANDERSON_MEMORY)
@@ -469,13 +457,6 @@ def solve(
             report.history.append(problem.objective(projected if problem.nonneg else x))
         report.iterations = k
         report.primal_residuals, report.dual_residuals = primal, dual
-        if stall_window and (converged or recent):
-            recent.append(problem.objective(projected if problem.nonneg else x))
-            window = recent[-stall_window:]
-            converged = converged and (
-                len(window) >= 2
-                and max(window) - min(window) <= STALL_FACTOR * rtol * abs(window[-1])
-            )
         if converged:
             report.converged = True
             break
