@@ -130,6 +130,11 @@ class Problem:
         """Latent image shape (rows, cols, n)."""
         return self.formation.domain_shape
 
+    @property
+    def has_l1_penalty(self) -> bool:
+        """Whether some L1-type term has a positive weight (ADMM splits it off)."""
+        return any(t.norm == 1 and w > 0 for w, t, _ in self.penalties)
+
     def with_weights(self, weights: Sequence[float]) -> Problem:
         return Problem(
             self.formation,

@@ -370,7 +370,7 @@ def solve(
         Newton, at several times the ADMM solve.
     """
     shape = problem.shape
-    l1_splits = any(t.norm == 1 and w > 0 for w, t, _ in problem.penalties)
+    l1_splits = problem.has_l1_penalty
     rtol = default_rtol(problem.smoothness) if rtol is None else float(rtol)
     if not (0 < rtol < 1):
         raise DataError(f"rtol must be in (0, 1), got {rtol}")
