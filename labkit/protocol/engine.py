@@ -165,7 +165,7 @@ class Engine:
         while True:
             plan = self.plan()
             report.planned = plan.frame_count
-            self.progress.set_total(plan.frame_count, sum(self.session.has(k) for k in plan.keys()))
+            self.progress.set_total(plan.frame_count, sum(writer.has(k) for k in plan.keys()))
             desired: dict[str, Any] = {}
             for step in plan:
                 if isinstance(step, SetScene):
@@ -179,7 +179,8 @@ class Engine:
                     self._meter(step, report)
                     break  # exposures known now: rebuild the plan
                 elif isinstance(step, Capture):
-                    missing = [k for k in step.keys() if not self.session.has(k)]
+                    # queued frames count: the plan is rebuilt while writes are pending
+                    missing = [k for k in step.keys() if not writer.has(k)]
                     if missing:
                         self._apply(desired)
                         self._capture(step, missing, writer)

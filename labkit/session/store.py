@@ -283,6 +283,8 @@ class FrameWriter:
 
     At most `max_pending` frames are in flight (bounded memory); :meth:`submit` blocks
     beyond that. Errors of a write are raised by the next :meth:`submit` or :meth:`close`.
+    A key is taken once it is queued (:meth:`has`): a second frame for it would race the
+    first to the same file, so :meth:`submit` refuses it.
     """
 
     def __init__(self, session: Session, *, workers: int = 2, max_pending: int = 4) -> None:
@@ -290,14 +292,26 @@ class FrameWriter:
         self._pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="labkit-writer")
         self._slots = threading.BoundedSemaphore(max_pending)
         self._futures: list[Future] = []
+        self._queued: set[str] = set()
+
+    def has(self, key: FrameKey) -> bool:
+        """Whether a frame is stored or queued for storage."""
+        return key.id in self._queued or self.session.has(key)
 
     def submit(self, key: FrameKey, frame: Frame, **facts: Any) -> None:
         """Queue a frame for durable storage."""
         self._raise_failures()
+        if self.has(key):
+            raise ValueError(f"frame {key.id} is already stored or queued; it is taken once")
+        self._queued.add(key.id)
         self._slots.acquire()
         future = self._pool.submit(self.session.store, key, frame, **facts)
-        future.add_done_callback(lambda _: self._slots.release())
+        future.add_done_callback(lambda _: self._done(key))
         self._futures.append(future)
+
+    def _done(self, key: FrameKey) -> None:
+        self._queued.discard(key.id)  # stored (a record now) or failed (free to retake)
+        self._slots.release()
 
     def _raise_failures(self) -> None:
         done = [f for f in self._futures if f.done()]

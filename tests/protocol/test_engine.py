@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -14,7 +16,7 @@ from labkit.protocol import CaptureStopped, Engine, build_plan
 from labkit.protocol.engine import Progress
 from labkit.protocol.hardware import open_hardware
 from labkit.rig import load_rig
-from labkit.session import Session, key_of
+from labkit.session import MANIFEST_FILE, Session, key_of
 
 
 def _run(rig, folder: Path, **engine_options):
@@ -147,3 +149,25 @@ def test_auto_bracketing_captures_fewer_frames_and_resumes_with_its_choice(
 
 def _quick() -> dict:
     return quick_plan()
+
+
+def test_frames_still_being_written_are_not_captured_again_after_metering(
+    make_rig, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """After each metering the plan is rebuilt; a frame queued but not yet on disk must
+    count as taken, or a second grab of the same key races the first to the same file."""
+    changes = _quick()
+    changes["plan.exposures_s"] = {"unfiltered": "auto", "filtered": "auto"}
+    rig = load_rig(make_rig(**changes))
+    store = Session.store
+
+    def slow_store(self, key, frame, **facts):
+        time.sleep(0.05)  # a slow disk: writes are still pending when the next meter ends
+        return store(self, key, frame, **facts)
+
+    monkeypatch.setattr(Session, "store", slow_store)
+    report, session, _ = _run(rig, tmp_path / "s")
+    lines = (session.folder / MANIFEST_FILE).read_text().splitlines()
+    keys = [json.loads(line)["key"] for line in lines]
+    assert len(keys) == len(set(keys)) == report.stored_now
+    assert session.verify() == {}

@@ -117,6 +117,18 @@ def test_frame_writer_stores_every_frame_once(session: Session) -> None:
     assert not list(session.folder.rglob("*.part"))
 
 
+def test_frame_writer_takes_a_key_once_whether_queued_or_stored(session: Session) -> None:
+    with FrameWriter(session, workers=1, max_pending=2) as writer:
+        writer.submit(_key(0), _frame(0))
+        assert writer.has(_key(0)) and not writer.has(_key(1))
+        with pytest.raises(ValueError, match=r"r000 is already stored or queued"):
+            writer.submit(_key(0), _frame(1))
+    assert writer.has(_key(0)) and session.has(_key(0))
+    with FrameWriter(session) as again, pytest.raises(ValueError, match="already stored"):
+        again.submit(_key(0), _frame(2))
+    assert session.verify() == {} and len(session.records) == 1
+
+
 def test_frame_writer_reports_a_failed_write(session: Session) -> None:
     bad = _frame(0)
     bad.image = bad.image.astype(np.float32)
@@ -124,7 +136,7 @@ def test_frame_writer_reports_a_failed_write(session: Session) -> None:
     writer.submit(_key(0), bad)
     with pytest.raises(DataError, match="uint8/uint16"):
         writer.close()
-    assert session.records == {}
+    assert session.records == {} and not writer.has(_key(0))  # free to take again
 
 
 def test_dark_keys_and_leftover_temp_files(session: Session) -> None:
