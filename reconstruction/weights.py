@@ -204,7 +204,10 @@ def select_weights(
         Maps a latent pixel to the truth's channels (e.g. B at the band centres); default
         the identity.
     rtol, max_iter : float, int
-        ADMM tolerance and iteration limit of the selection solves.
+        ADMM tolerance and iteration limit of the selection solves. They stop on ADMM's
+        residual test alone (``settle=False`` of :func:`~reconstruction.solvers.admm.solve`):
+        at the thesis' loose tolerance they promise no distance to the optimum, and the
+        wait for the objective to settle is what would cost most here (README).
     progress : callable, optional
         ``progress(round, best_value)`` after each round.
 
@@ -223,7 +226,11 @@ def select_weights(
     if criterion == "msec" and (truths is None or len(truths) != len(problems)):
         raise DataError("the MSE criterion needs the true latent image of every patch (simulation)")
     evaluate = _Evaluator(
-        problems, criterion, truths, truth_matrix, {"rtol": rtol, "max_iter": max_iter}
+        problems,
+        criterion,
+        truths,
+        truth_matrix,
+        {"rtol": rtol, "max_iter": max_iter, "settle": False},
     )
     if criterion == "mdc":
         evaluate.prepare_mdc(count)

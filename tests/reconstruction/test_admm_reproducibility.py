@@ -44,8 +44,8 @@ def test_warm_and_cold_starts_agree_under_rounding(smoothness: float) -> None:
     """The cold-start problem of the issue (32², uniform Φ of up to 2.7 px, L2, w 0.05,
     non-negative) at ε_rel = 1e-6, from the initial estimate and from zeros: every run
     (1 and 2 threads, perturbed) within 1e-4 of the others and iterations within 25 %
-    (measured: σ = 0 1.5e-5–2.0e-5, ≤ 6 %; σ = 1e-3 ≤ 3.2e-6, ≤ 3 %). Distance above the
-    optimum: σ = 1e-3 2.8e-5–3.4e-5; σ = 0 1.7e-4–2.0e-4, whatever the start, memory,
+    (measured: σ = 0 1.5e-5–2.0e-5, ≤ 6 %; σ = 1e-3 ≤ 2.2e-6, ≤ 5 %). Distance above the
+    optimum: σ = 1e-3 9e-6–1.1e-5; σ = 0 1.7e-4–2.0e-4, whatever the start, memory,
     relaxation or penalty (the thesis' problem's optimum is degenerate, DEFAULT_RTOL):
     held to 3e-4 there."""
     p = dataclasses.replace(shifted_nonneg_problem(), smoothness=smoothness)
@@ -63,15 +63,34 @@ def test_warm_and_cold_starts_agree_under_rounding(smoothness: float) -> None:
 
 
 def test_a_warm_start_is_cheaper_than_a_cold_one() -> None:
-    """At the default tolerance the initial estimate saves ADMM iterations and ends lower
-    (measured at 1 and 2 threads and perturbed: σ = 1e-3 40 against 78 iterations, 1.4e-3
-    against 4.6e-3 above the optimum; σ = 0 7 against 17, 7.3e-3 against 8.2e-3)."""
-    for smoothness in (0.0, SUGGESTED_SMOOTHNESS):
+    """At the default tolerance the initial estimate saves ADMM iterations and ends no
+    higher (measured at 1 and 2 threads and perturbed: σ = 0 7 against 17 iterations,
+    7.3e-3 against 8.2e-3 above the optimum; σ = 1e-3 173 against 200, 1.3e-5 against
+    1.9e-5 to 5.4e-5, 197 to 200 iterations from zeros across the runs)."""
+    for smoothness, margin in ((0.0, 2.0), (SUGGESTED_SMOOTHNESS, 1.0)):
         p = dataclasses.replace(shifted_nonneg_problem(), smoothness=smoothness)
         warm = stability_row("warm", p)
         cold = stability_row("cold", p, x0=np.zeros(p.shape))
-        assert max(r.iterations for r in warm.runs) * 1.5 < min(r.iterations for r in cold.runs)
+        assert max(r.iterations for r in warm.runs) * margin < min(r.iterations for r in cold.runs)
         assert warm.max_gap < min(r.gap for r in cold.runs)
+        assert warm.max_gap < (1e-4 if smoothness > 0 else 1e-2)
+        if smoothness > 0:
+            assert cold.max_gap < 1e-4
+
+
+def test_with_smoothness_the_solve_waits_for_the_objective_to_settle() -> None:
+    """The same patch at σ = 1e-3 and the default tolerance: ADMM's residual test passes
+    while the iterate still drifts along a flat valley of the objective, so the residual
+    test alone (``settle=False``) stops well above the optimum (measured 1.4e-3 from the
+    initial estimate, 4.6e-3 from zeros); the default also waits for the objective to
+    settle and ends within the promised 1e-4 (1.3e-5, 1.9e-5–5.4e-5)."""
+    p = dataclasses.replace(shifted_nonneg_problem(), smoothness=SUGGESTED_SMOOTHNESS)
+    optimum, _ = reference_optimum(p)
+    for x0 in (None, np.zeros(p.shape)):
+        early = solve(p, x0=x0, settle=False).report.objective
+        settled = solve(p, x0=x0).report.objective
+        assert (early - optimum) / optimum > 5e-4
+        assert (settled - optimum) / optimum < 1e-4
 
 
 SMALL_PROBLEMS = [
