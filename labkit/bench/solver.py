@@ -178,7 +178,7 @@ def stability_table(rows: list[StabilityRow], *, title: str) -> Table:
 def recorded_patch_problems(case: dict[str, Any], **options: Any) -> list[tuple[Any, dict]]:
     """(problem, solve options) of every patch solve :func:`reconstruct` makes for `case`."""
     import reconstruction.patches as patches
-    from reconstruction import reconstruct
+    from labkit.bench.reconstruct import _run
 
     recorded: list[tuple[Any, dict]] = []
     solve = patches.solve
@@ -190,9 +190,7 @@ def recorded_patch_problems(case: dict[str, Any], **options: Any) -> list[tuple[
 
     patches.solve = recording
     try:
-        reconstruct(
-            case["raw"], cfa=case["cfa"], response=case["response"], scheduler="sync", **options
-        )
+        _run(case, scheduler="sync", **options)
     finally:
         patches.solve = solve
     return recorded
@@ -224,8 +222,7 @@ def bench_solver(
     repeats : int
         Unused: each run is one solve (its time is reported).
     """
-    from labkit.bench.reconstruct import SHAPE, VARIANT_SHAPE, _bands, simulated_case
-    from reconstruction import reconstruct
+    from labkit.bench.reconstruct import SHAPE, VARIANT_SHAPE, _bands, _run, simulated_case
 
     colorchecker = simulated_case(rig_path, SHAPE, "colorchecker")
     texture = simulated_case(rig_path, VARIANT_SHAPE, "texture")
@@ -247,13 +244,8 @@ def bench_solver(
             GAP_TARGET,
         ),
     ]
-    main = reconstruct(
-        colorchecker["raw"],
-        cfa=colorchecker["cfa"],
-        response=colorchecker["response"],
-        bands=_bands(colorchecker, 7),
-        dispersion=colorchecker["model"],
-        prior="L2",
+    main, _ = _run(
+        colorchecker, bands=_bands(colorchecker, 7), dispersion=colorchecker["model"], prior="L2"
     )
     weights = f"fixed:{main.log['weights']['values'][0]:.6g}"
     cases: list[Measurement] = []

@@ -460,12 +460,15 @@ def solve(
         cg_atol = CG_FORCING * max(dual_floor, gradient_scale)
         if problem.nonneg:
             projected = splits[-1].z_next
-        if track_objective:
-            report.history.append(problem.objective(projected if problem.nonneg else x))
+        settling = bool(stall_window) and (converged or bool(recent))
+        if track_objective or settling:
+            objective = problem.objective(projected if problem.nonneg else x)
+            if track_objective:
+                report.history.append(objective)
         report.iterations = k
         report.primal_residuals, report.dual_residuals = primal, dual
-        if stall_window and (converged or recent):
-            recent.append(problem.objective(projected if problem.nonneg else x))
+        if settling:
+            recent.append(objective)
             window = recent[-stall_window:]
             converged = converged and (
                 len(window) >= 2
