@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from collections import Counter
 from pathlib import Path
 
 from labkit.errors import ConfigError
@@ -30,10 +31,20 @@ def register(commands: argparse._SubParsersAction) -> None:
         "anything) and store them as a labkit session. Example for FlyCapture-style names "
         "d1_disks32cmV2_450nm_100ms_2019-02-08-174831-0004.tif: --pattern "
         "'d1_{scene}_{illumination}_{exposure}_{date}-{replicate}.tif' --pattern "
-        "'d1_dark_{exposure}_{date}-{replicate}.tif'.",
+        "'d1_dark_{exposure}_{date}-{replicate}.tif'. Each frame's bit depth, "
+        "justification and saturation level are read from its data and the rig's pixel "
+        "format (8-bit files: 255; 16-bit files: N-bit data right- or left-justified) and "
+        "recorded in the manifest; --bits, --saturation and --black-level override them.",
     )
     imp.add_argument("session", type=Path, help="new session folder")
-    imp.add_argument("--from", dest="source", type=Path, required=True, help="folder of TIFFs")
+    imp.add_argument(
+        "--from",
+        dest="source",
+        type=Path,
+        action="append",
+        required=True,
+        help="folder of TIFFs (repeatable, e.g. the frames and the darks)",
+    )
     imp.add_argument(
         "--pattern",
         action="append",
@@ -50,6 +61,22 @@ def register(commands: argparse._SubParsersAction) -> None:
         metavar="TEXT=SLOT",
         help="map an illumination text in file names to a rig slot name",
     )
+    levels = imp.add_mutually_exclusive_group()
+    levels.add_argument(
+        "--bits",
+        type=int,
+        help="the files hold right-justified data of this many bits (saturation 2^bits − 1)",
+    )
+    levels.add_argument(
+        "--saturation",
+        type=float,
+        metavar="DN",
+        help="saturation level in the files' counts (e.g. 65520 for left-justified 12-bit)",
+    )
+    imp.add_argument(
+        "--black-level", type=float, metavar="DN", help="black level in the files' counts (0)"
+    )
+    imp.add_argument("--no-progress", action="store_true", help="no progress bar")
     imp.set_defaults(handler=_import)
 
 
@@ -75,11 +102,27 @@ def _import(args: argparse.Namespace) -> int:
             raise ConfigError(f"--map {item!r}: expected TEXT=SLOT, e.g. 450nm=450")
         mapping[text] = slot
     rig = load_rig(args.rig or default_rig_path())
-    with tqdm(unit="frame", desc="import") as bar:
+    # disable=None: no bar when stderr is not a terminal (logs, pipes), so errors stay one line
+    with tqdm(unit="frame", desc="import", disable=True if args.no_progress else None) as bar:
         session, unmatched = import_session(
-            args.session, args.source, args.pattern, rig, mapping=mapping, progress=bar.update
+            args.session,
+            args.source,
+            args.pattern,
+            rig,
+            mapping=mapping,
+            bits=args.bits,
+            saturation=args.saturation,
+            black_level=args.black_level,
+            progress=bar.update,
         )
     print(f"imported {len(session.records)} frames into {args.session}")
+    levels = Counter(
+        (r["levels_from"], r["saturation_dn"], r["black_level"]) for r in session.records.values()
+    )
+    for (reason, saturation, black), count in sorted(levels.items()):
+        print(
+            f"levels: {reason}: saturation {saturation:g} DN, black {black:g} DN ({count} frames)"
+        )
     if unmatched:
         names = ", ".join(p.name for p in unmatched[:5])
         print(

@@ -48,6 +48,14 @@ MAX_EXPOSURE_SPAN = 1e15
 longest exposure's units in float32 (largest finite 3.4e38; saturation ≤ 2³² DN)."""
 
 
+FIT_MARGIN_PX = 2
+"""Clipping spreads into the pixels around a clipped one (blooming, and on frames that were
+demosaiced, resized and mosaiced again, the interpolation kernels), and a spread pixel
+below `high` still reads low, which biases a factor fit towards the longer exposure's
+deficit. The blend keeps the thesis' radius-1 erosion; the fit, which has pixels to
+spare, leaves out a (2·margin + 1)² square around every clipped pixel."""
+
+
 @dataclass(frozen=True)
 class SensorLevels:
     """Where the raw counts start and stop.
@@ -232,6 +240,7 @@ def merge_exposures(
     low: float = 0.02,
     high: float = 0.95,
     min_pairs: int = 100,
+    fit_margin: int = FIT_MARGIN_PX,
     erode: bool = True,
     on_frame: Callable[[], None] | None = None,
 ) -> HDRResult:
@@ -255,6 +264,10 @@ def merge_exposures(
         2 % and 95 %).
     min_pairs : int
         Fewest pixel pairs for fitting a scaling factor (else the nominal ratio is used).
+    fit_margin : int
+        Pixels within this many pixels (in rows and in columns) of one at or above
+        `high` in either exposure of a pair are left out of its factor fit (see
+        :data:`FIT_MARGIN_PX`).
     erode : bool
         Erode the blooming weight (thesis method); False only for demonstrations.
     on_frame : callable or None
@@ -298,7 +311,10 @@ def merge_exposures(
     warnings: list[str] = []
     total = weight_sum = None
     pilot = has_pilot = shot_part = constant_part = None
-    previous: tuple[np.ndarray, np.ndarray, float] | None = None
+    previous: tuple[np.ndarray, np.ndarray, float, np.ndarray] | None = None
+    if fit_margin < 0:
+        raise DataError(f"fit_margin {fit_margin} must be a non-negative number of pixels")
+    margin = np.ones((2 * fit_margin + 1,) * 2, bool)
     signal = None
 
     for exposure in order:
@@ -322,6 +338,7 @@ def merge_exposures(
         signal = stats.mean - np.asarray(dark.mean, dtype=np.float32)
         unclipped = stats.maximum < clip_level
         usable = ndimage.binary_erosion(unclipped, structure=DISK_1, border_value=1)
+        fittable = ndimage.binary_erosion(unclipped, structure=margin, border_value=1)
         if not usable.any():
             warnings.append(
                 f"every pixel at {exposure.exposure_s:g} s reaches {high:.0%} of saturation "
@@ -330,11 +347,11 @@ def merge_exposures(
         if previous is None:
             channel_chain: dict[str, float | None] = dict.fromkeys(CHANNEL_NAMES, 1.0)
         else:
-            longer, longer_usable, longer_s = previous
+            longer, _, longer_s, longer_fittable = previous
             pair = fit_pair_factor(
                 longer,
                 signal,
-                longer_usable & usable,
+                longer_fittable & fittable,
                 channels,
                 longer_s=longer_s,
                 shorter_s=exposure.exposure_s,
@@ -397,7 +414,7 @@ def merge_exposures(
             weight = blend_weight(signal / headroom, erode=erode)
         total += weight * scaled
         weight_sum += weight
-        previous = (signal, usable, exposure.exposure_s)
+        previous = (signal, usable, exposure.exposure_s, fittable)
         # free this exposure's frame-sized temporaries before the next one is read
         del stats, dark, scaled, weight, unclipped
         if noise_aware:

@@ -220,7 +220,8 @@ class NoiseEstimator:
         if gain is None:
             raise DataError(
                 "cannot estimate the sensor gain: no exposure has ≥ 2 replicates with pixels "
-                f"between {self.low:.0%} and {self.high:.0%} of saturation"
+                f"between {self.low:.0%} and {self.high:.0%} of saturation; the noise method "
+                "needs replicates (--method thesis merges one frame per exposure)"
             )
         result = NoiseModel(gain, pixels=self.pixels)
         for exposure in exposures_s:

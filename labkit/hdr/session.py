@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import tifffile
 import yaml
 
 import labkit
@@ -152,6 +153,8 @@ def plan_hdr(
             lit[(record["scene"], record["illumination"])][float(record["exposure_s"])].append(
                 record
             )
+    levels = _levels(records, folder)
+    _check_capacity(_stored_dtype(folder, first), levels, f"frame {first['key']}")
     rig = session.rig
     jobs = []
     for (scene, illumination), by_exposure in sorted(lit.items()):
@@ -160,7 +163,7 @@ def plan_hdr(
         if illuminations and illumination not in illuminations:
             continue
         exposures = [
-            ExposureInput(t, [_source(folder, r) for r in _by_replicate(rs)])
+            ExposureInput(t, [_source(folder, r, levels) for r in _by_replicate(rs)])
             for t, rs in sorted(by_exposure.items())
         ]
         band = rig.filter_for(illumination) if illumination != DARK else None
@@ -171,7 +174,7 @@ def plan_hdr(
             f"session {folder} has no lit frames" + (f" for {wanted}" if wanted else "")
         )
     darks = {
-        t: ExposureInput(t, [_source(folder, r) for r in _by_replicate(rs)])
+        t: ExposureInput(t, [_source(folder, r, levels) for r in _by_replicate(rs)])
         for t, rs in dark_records.items()
     }
     if not no_dark:
@@ -185,7 +188,7 @@ def plan_hdr(
                 "them (`labkit capture` with the same rig and --session), or pass --no-dark "
                 "to subtract only the black level (dark current then stays in the image)"
             )
-    return HDRPlan(folder, jobs, darks, cfa, shape, _levels(records, folder), no_dark)
+    return HDRPlan(folder, jobs, darks, cfa, shape, levels, no_dark)
 
 
 @fixed_blas_threads
@@ -310,35 +313,90 @@ def _by_replicate(records: list[dict]) -> list[dict]:
     return sorted(records, key=lambda r: int(r["replicate"]))
 
 
-def _source(folder: Path, record: dict) -> FrameSource:
+def _source(folder: Path, record: dict, levels: SensorLevels) -> FrameSource:
     path = folder / record["file"]
     name = f"frame {record['key']} ({path})"
 
     def load() -> np.ndarray:
         try:
-            return read_raw_tiff(path)[0]
+            image = read_raw_tiff(path)[0]
         except DataError as error:
             raise DataError(
                 f"{name}: {error}; `labkit session show {folder} --verify` lists damaged "
                 "frames and resuming the capture re-takes them"
             ) from None
+        return _checked(image, levels, name)
 
     return FrameSource(name, load)
 
 
 def _levels(records: list[dict], folder: Path) -> SensorLevels:
-    """Saturation and black level from the manifest (else from the pixel format)."""
-    saturations = {r["saturation_dn"] for r in records if r.get("saturation_dn") is not None}
-    blacks = {r["black_level"] for r in records if r.get("black_level") is not None}
-    if saturations:
-        saturation = float(min(saturations))
-    else:
-        saturation = float(2 ** pixel_format_bits(records[0]["pixel_format"]) - 1)
-    black = float(min(blacks)) if blacks else 0.0
+    """The one saturation and black level of the frames to merge, from the manifest.
+
+    A record without levels (a capture backend that does not report them) takes the
+    saturation of its pixel format's bit depth and black level 0. Frames whose levels
+    differ cannot share darks or factors, so that is an error, as is a pixel format
+    without a bit depth; each frame's counts are checked against the levels when read.
+    """
+    found: dict[tuple[float, float], dict] = {}
+    for record in records:
+        saturation = record.get("saturation_dn")
+        if saturation is None:
+            try:
+                saturation = 2 ** pixel_format_bits(record["pixel_format"]) - 1
+            except DataError as error:
+                raise DataError(
+                    f"session {folder}: frame {record['key']} records no saturation level and "
+                    f"{error}; import the frames again with `labkit session import --bits N` "
+                    "or `--saturation DN`"
+                ) from None
+        black = record.get("black_level")
+        found.setdefault((float(saturation), float(black or 0.0)), record)
+    if len(found) > 1:
+        (a, first), (b, other) = list(found.items())[:2]
+        raise DataError(
+            f"session {folder}: frame {first['key']} has saturation {a[0]:g} DN and black "
+            f"level {a[1]:g} DN but frame {other['key']} has {b[0]:g} and {b[1]:g} DN; frames "
+            "and darks of different bit depths cannot be merged: import them again with one "
+            "--bits or --saturation"
+        )
+    (saturation, black), _ = found.popitem()
     try:
         return SensorLevels(saturation, black)
     except DataError as error:
         raise DataError(f"session {folder}: {error}") from None
+
+
+def _check_capacity(dtype: np.dtype, levels: SensorLevels, name: str) -> None:
+    capacity = np.iinfo(dtype).max if dtype.kind in "ui" else np.inf
+    if levels.saturation_dn > capacity:
+        raise DataError(
+            f"{name} is {dtype} (at most {capacity} DN) but the session's saturation "
+            f"level is {levels.saturation_dn:g} DN: no pixel could ever saturate, so every "
+            "level-based decision of the merge would be wrong; import the frames again with "
+            "`labkit session import` (which records each frame's levels)"
+        )
+
+
+def _stored_dtype(folder: Path, record: dict) -> np.dtype:
+    try:
+        with tifffile.TiffFile(folder / record["file"]) as tif:
+            return tif.pages[0].dtype
+    except Exception:  # unreadable: reported with the fix when the merge reads it
+        return np.dtype(np.uint16)
+
+
+def _checked(image: np.ndarray, levels: SensorLevels, name: str) -> np.ndarray:
+    """`image`, unless its counts contradict the levels the merge would assume."""
+    _check_capacity(image.dtype, levels, name)
+    peak = image.max(initial=0)
+    if peak > levels.saturation_dn:
+        raise DataError(
+            f"{name} has values up to {peak} DN, above the session's saturation level "
+            f"{levels.saturation_dn:g} DN; import the frames again with the right --bits or "
+            "--saturation"
+        )
+    return image
 
 
 def _provenance(plan: HDRPlan, job: HDRJob, result: HDRResult) -> dict[str, Any]:

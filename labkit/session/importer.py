@@ -6,7 +6,11 @@ File names are matched against patterns with named fields, e.g.
 ``illumination`` (a rig slot name, or its filter's centre such as ``450nm``; ``dark``
 for dark frames), ``exposure`` (with a unit: ``us``, ``ms`` or ``s``) and ``replicate``
 (an integer); any other ``{name}`` matches anything, ``*`` too. A pattern without
-``{illumination}`` describes dark frames.
+``{illumination}`` describes dark frames, which every scene of the session shares.
+
+Each frame's bit depth, justification, saturation and black level are decided from its
+data and the rig's pixel format (:mod:`labkit.session.sample_format`) and recorded in
+its manifest record, so that ``labkit hdr`` knows the levels of the stored counts.
 """
 
 from __future__ import annotations
@@ -18,12 +22,17 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import tifffile
 
 from labkit.errors import ConfigError, DataError
 from labkit.frame import DARK, Frame, FrameKey
 from labkit.rig import Rig
+from labkit.session.sample_format import (
+    SampleFacts,
+    decide_formats,
+    sample_facts,
+    stored_samples,
+)
 from labkit.session.store import Session
 
 _FIELD = re.compile(r"\{(\w+)\}")
@@ -105,14 +114,20 @@ def illumination_resolver(rig: Rig, mapping: Mapping[str, str] | None = None):
 
 
 def match_files(
-    folder: Path, patterns: Sequence[str], rig: Rig, mapping: Mapping[str, str] | None = None
+    folders: Path | Sequence[Path],
+    patterns: Sequence[str],
+    rig: Rig,
+    mapping: Mapping[str, str] | None = None,
 ) -> tuple[list[ImportedFile], list[Path]]:
-    """Match the TIFF files of `folder`; returns (matched with keys, unmatched)."""
+    """Match the TIFF files of `folders`; returns (matched with keys, unmatched)."""
+    folders = [folders] if isinstance(folders, Path) else list(folders)
     regexes = [compile_pattern(p) for p in patterns]
     resolve = illumination_resolver(rig, mapping)
     groups: dict[tuple, list[tuple[int, str, Path]]] = defaultdict(list)
     unmatched: list[Path] = []
-    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in (".tif", ".tiff"))
+    files = sorted(
+        p for folder in folders for p in folder.iterdir() if p.suffix.lower() in (".tif", ".tiff")
+    )
     for path in files:
         for regex in regexes:
             match = regex.match(path.name)
@@ -141,45 +156,87 @@ def match_files(
 
 def import_session(
     folder: str | Path,
-    source: str | Path,
+    source: str | Path | Sequence[str | Path],
     patterns: Sequence[str],
     rig: Rig,
     *,
     mapping: Mapping[str, str] | None = None,
+    bits: int | None = None,
+    saturation: float | None = None,
+    black_level: float | None = None,
     progress=None,
 ) -> tuple[Session, list[Path]]:
-    """Create a session in `folder` from the TIFF frames in `source`.
+    """Create a session in `folder` from the TIFF frames in `source` (one or more folders).
 
-    Returns the session and the files that matched no pattern. Nothing is written when
-    no file matches or a file is not a 2-D uint8/uint16 image.
+    Parameters
+    ----------
+    folder : path
+        The new session folder.
+    source : path or sequence of paths
+        Folders of TIFF files (e.g. the frames and a folder of darks).
+    patterns : sequence of str
+        File-name patterns (see the module docstring); the first that matches wins.
+    rig : Rig
+        The rig the frames came from (slots, camera pixel format).
+    mapping : mapping, optional
+        Illumination texts of the file names → rig slot names.
+    bits, saturation, black_level : optional
+        Overrides of the levels decided from the data: right-justified data of `bits`
+        bits, or the saturation level (DN); the black level (DN, default 0).
+    progress : callable, optional
+        Called with 1 after each stored frame.
+
+    Returns
+    -------
+    (Session, list of Path)
+        The session and the files that matched no pattern.
+
+    Raises
+    ------
+    DataError
+        No file matches, a file is not a 2-D mosaic, or the files' levels cannot be
+        decided (:func:`labkit.session.sample_format.decide_formats`). Nothing is written.
     """
-    source = Path(source)
-    if not source.is_dir():
-        raise DataError(f"import source {source} is not a folder")
-    matched, unmatched = match_files(source, patterns, rig, mapping)
+    sources = [Path(source)] if isinstance(source, str | Path) else [Path(s) for s in source]
+    if not sources:
+        raise DataError("give at least one folder of frames to import")
+    for folder_in in sources:
+        if not folder_in.is_dir():
+            raise DataError(f"import source {folder_in} is not a folder")
+    matched, unmatched = match_files(sources, patterns, rig, mapping)
     if not matched:
         example = unmatched[0].name if unmatched else "(no .tif files)"
+        where = ", ".join(str(s) for s in sources)
         raise DataError(
-            f"no file in {source} matches {list(patterns)} (e.g. {example}); check --pattern"
+            f"no file in {where} matches {list(patterns)} (e.g. {example}); check --pattern"
         )
-    images = []
+    images = {}
+    facts: dict[Path, SampleFacts] = {}
     for item in matched:  # read all first: a bad file must not leave a half-built session
         try:
             image = tifffile.imread(item.path)
         except Exception as error:  # tifffile raises many types on bad files
             raise DataError(f"{item.path} is not a readable TIFF ({error})") from None
-        if image.ndim != 2 or image.dtype not in (np.uint8, np.uint16):
-            raise DataError(
-                f"{item.path}: expected a 2-D uint8/uint16 raw mosaic, got {image.dtype} "
-                f"{image.shape}"
-            )
-        images.append(image)
-    session = Session.create(
-        folder, rig, imported_from=str(source.resolve()), import_patterns=list(patterns)
+        facts[item.path] = sample_facts(image, name=str(item.path))
+        images[item.path] = stored_samples(image)
+    formats = decide_formats(
+        facts,
+        pixel_format=rig.camera.pixel_format,
+        bits=bits,
+        saturation=saturation,
+        black_level=black_level,
     )
-    for item, image in zip(matched, images, strict=True):
+    origin = [str(s.resolve()) for s in sources]
+    session = Session.create(
+        folder,
+        rig,
+        imported_from=origin[0] if len(origin) == 1 else origin,
+        import_patterns=list(patterns),
+    )
+    for item in matched:
+        chosen = formats[item.path]
         frame = Frame(
-            image=image,
+            image=images[item.path],
             frame_id=item.source_replicate,
             exposure_s=item.key.exposure_s,
             exposure_readback_s=item.key.exposure_s,
@@ -187,8 +244,15 @@ def import_session(
             pixel_format=rig.camera.pixel_format,
             device_timestamp_ns=0,
             host_timestamp_s=os.stat(item.path).st_mtime,
+            extra={"saturation_dn": chosen.saturation_dn, "black_level": chosen.black_level_dn},
         )
-        session.store(item.key, frame, source_file=item.path.name)
+        session.store(
+            item.key,
+            frame,
+            source_file=item.path.name,
+            source_dtype=facts[item.path].container,
+            **chosen.manifest_facts(),
+        )
         if progress:
             progress(1)
     session.set_status("imported")
