@@ -29,8 +29,10 @@ from labkit.blas_threads import fixed_blas_threads
 from labkit.errors import DataError
 from labkit.io.exr import RawImage
 
-#: Bands whose recorded signal is less in-band than this are left out by default.
-MIN_PURITY = 0.9
+#: Bands whose recorded signal is less in-band than this are left out by default. Chosen
+#: between the leak-dominated and the clean bands of both the simulated rig and the real
+#: frames, with their measured purities (README, "Band selection") on either side.
+MIN_PURITY = 0.8
 CHANNELS = ("R", "G", "B")
 
 ModelType = Literal["polynomial", "spline"]
@@ -201,10 +203,12 @@ def _filtered_images(
         if band is None and bands is not None:
             reason = "not in the rig; labelled with its nominal wavelength"
         used = purity is None or purity >= min_purity
+        if band is not None and used:
+            reason = band.explain()
         if not used:
             reason = (
-                f"only {purity:.0%} of its signal is in-band (effective {wavelength:.1f} nm); "
-                f"out-of-band leakage dominates"
+                f"only {band.explain()} (effective {wavelength:.1f} nm); out-of-band leakage "
+                f"dominates"
             )
             if image is ref_image:
                 raise DataError(
@@ -305,7 +309,9 @@ def band_table(calibration: DispersionCalibration) -> str:
         nominal = "—" if band.nominal_nm is None else f"{band.nominal_nm:g}"
         effective = "—" if band.wavelength_nm is None else f"{band.wavelength_nm:.1f}"
         purity = "—" if band.purity is None else f"{band.purity:.1%}"
-        used = "yes" if band.used else f"no: {band.reason}"
+        used = f"yes: {band.reason}" if band.used and band.reason else "yes"
+        if not band.used:
+            used = f"no: {band.reason}"
         lines.append(f"{band.illumination:>10} {nominal:>9} {effective:>10} {purity:>7}  {used}")
     return "\n".join(lines)
 

@@ -48,6 +48,7 @@ from labkit.fitting import principal_slope
 from labkit.io.atomic import write_text_atomic
 from labkit.io.exr import RawImage
 from labkit.io.plain import to_plain
+from labkit.spectra import Spectra, camera_response
 
 FORMAT_VERSION = 1
 
@@ -204,6 +205,31 @@ class ChannelSensitivity:
             "labkit": to_plain(self.labkit),
         }
         write_text_atomic(path, yaml.safe_dump(document, sort_keys=False, allow_unicode=True))
+
+    def as_response(self) -> Spectra:
+        """The table as a camera response sampled at its bands: R = r/g, G = 1, B = b/g.
+
+        This is the thesis' calibrated sensor map (Algorithm 12): each band's channel
+        sensitivities relative to its Green, so a spectral image reconstructed with it is
+        in units of each band's Green response. Between bands the response is linear.
+
+        Raises
+        ------
+        DataError
+            A ratio could not be fitted (NaN), or fewer than two bands.
+        """
+        for channel in ("r", "b"):
+            ratios = getattr(self, f"{channel}_over_g")
+            missing = ~np.isfinite(ratios)
+            if missing.any():
+                band = float(self.wavelengths_nm[missing][0])
+                raise DataError(
+                    f"sensitivity {self.source}: {channel}_over_g at {band:g} nm is unknown, so "
+                    "the table cannot serve as a camera response; calibrate with images that "
+                    "have signal in that band or leave the band out of the file"
+                )
+        values = np.column_stack([self.r_over_g, np.ones(len(self)), self.b_over_g])
+        return Spectra(self.wavelengths_nm, np.maximum(values, 0.0), ("R", "G", "B"))
 
     @classmethod
     def from_file(cls, path: str | Path) -> ChannelSensitivity:
@@ -512,7 +538,7 @@ def nominal_channel_sensitivity(
     ConfigError
         An illumination is unknown or unfiltered.
     """
-    from labkit.spectra import camera_response, illuminant, trapezoid_weights, wavelength_grid
+    from labkit.spectra import illuminant, trapezoid_weights, wavelength_grid
 
     names = list(rig.slider.illumination_names() if illuminations is None else illuminations)
     filters = {}
@@ -529,7 +555,7 @@ def nominal_channel_sensitivity(
         raise ConfigError(f"rig {rig.source or rig.name} has no filtered slider position")
     step = 1.0 if rig.sim is None else min(1.0, float(rig.sim.spectral_step_nm))
     w = wavelength_grid(380.0, 780.0, step)
-    response = camera_response(rig.response_source()).select(["R", "G", "B"])
+    response = load_response(rig.response_source()).select(["R", "G", "B"])
     q = response.resample(w, extrapolate="zero").values
     light = illuminant(rig.light.source, w).values[:, 0] * trapezoid_weights(w)
     order = sorted(filters, key=lambda name: filters[name].centre_nm)
@@ -790,3 +816,31 @@ def _build(
         source=source,
         labkit={**(provenance or {}), "file": str(path)},
     )
+
+
+def is_sensitivity_file(source: str | Path) -> bool:
+    """Whether `source` names a table written by ``labkit calibrate sensitivity``."""
+    path = Path(str(source))
+    suffix = path.suffix.lower()
+    if suffix in (".yaml", ".yml"):
+        return True
+    if suffix != ".csv" or not path.is_file():
+        return False
+    with path.open(newline="", encoding="utf-8", errors="replace") as handle:
+        header = next(csv.reader(handle), [])
+    return "r_over_g" in [cell.strip() for cell in header]
+
+
+def load_response(source: str | Path) -> Spectra:
+    """A camera response from a dataset name, a response CSV, or a measured sensitivity.
+
+    Parameters
+    ----------
+    source : str or Path
+        A colour-science camera dataset name, a CSV ``wavelength_nm,R,G,B``, or the
+        ``sensitivity.yaml``/``.csv`` of ``labkit calibrate sensitivity`` (then
+        :meth:`ChannelSensitivity.as_response`: sampled at its bands).
+    """
+    if is_sensitivity_file(source):
+        return ChannelSensitivity.from_file(source).as_response()
+    return camera_response(source)

@@ -179,7 +179,7 @@ def _calibrate(rig: Rig, out: Path) -> dict[str, Any]:
     from labkit.sim.truth import model_error
 
     images = load_scene_hdr(out / "hdr", "disks")
-    bands = filter_bands(rig)
+    bands = filter_bands(rig, images=images)
     spectral = calibrate_dispersion(
         images, reference="600", bands=bands, direction="to_reference", workers=2
     )

@@ -35,7 +35,10 @@ class CameraConfig(_Strict):
     device: str | None = Field(None, description="device id, serial or IP; None = the first found")
     cti: str | None = Field(None, description="GenTL producer (.cti) path, genicam backend only")
     pixel_format: str = "BayerGB12"
-    response: str = Field("Nikon 5100 (NPL)", description="colour-science dataset or CSV path")
+    response: str = Field(
+        "Nikon 5100 (NPL)",
+        description="colour-science dataset, response CSV, or `labkit calibrate sensitivity` file",
+    )
     gain_db: NonNegativeFloat = 0.0
 
     @field_validator("pixel_format")
@@ -318,9 +321,14 @@ class Rig(_Strict):
         )
 
     def response_source(self) -> str:
-        """The camera response: a dataset name, or a CSV path relative to the rig file."""
+        """The camera response: a dataset name, or a file path relative to the rig file.
+
+        Files are response CSVs (``wavelength_nm,R,G,B``) or the ``sensitivity.yaml``/
+        ``.csv`` that ``labkit calibrate sensitivity`` writes (the thesis' sensor map).
+        """
         value = self.camera.response
-        return self.resolve_path(value) if value.lower().endswith(".csv") else value
+        is_file = value.lower().endswith((".csv", ".yaml", ".yml"))
+        return self.resolve_path(value) if is_file else value
 
     def resolve_path(self, value: str) -> str:
         """A path from the rig file, made absolute relative to the file's folder."""

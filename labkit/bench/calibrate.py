@@ -61,7 +61,7 @@ def bench_calibrate(
     notes : list of str, Plot and Table
     """
     from calibration.bands import filter_bands
-    from calibration.dispersion_calibration import calibrate_dispersion
+    from calibration.dispersion_calibration import MIN_PURITY, calibrate_dispersion
     from labkit.sim import SimulatedRig
     from labkit.sim.hdr_truth import simulated_hdr_images
 
@@ -71,14 +71,14 @@ def bench_calibrate(
     start = time.perf_counter()
     images = simulated_hdr_images(sim, SCENE, filtered, rng=np.random.default_rng(5))
     render_s = time.perf_counter() - start
-    bands = filter_bands(rig)
+    bands = filter_bands(rig, images=images)
     disks = len(sim.scene(SCENE).disks.centres())
     workers = os.cpu_count() or 1
     cases = [
         ("disks + polynomial, all 7 filters", "disks", "polynomial", 0.0, TARGET_S),
-        ("disks + polynomial, clean bands", "disks", "polynomial", 0.9, TARGET_S),
-        ("registration + polynomial, clean bands", "registration", "polynomial", 0.9, None),
-        ("disks + spline, clean bands", "disks", "spline", 0.9, None),
+        ("disks + polynomial, clean bands", "disks", "polynomial", MIN_PURITY, TARGET_S),
+        ("registration + polynomial, clean bands", "registration", "polynomial", MIN_PURITY, None),
+        ("disks + spline, clean bands", "disks", "spline", MIN_PURITY, None),
     ]
     results: list[Measurement] = []
     models: dict[str, Any] = {}

@@ -48,7 +48,8 @@ def register(commands: argparse._SubParsersAction) -> None:
         "--rig",
         default=None,
         help="rig YAML whose camera response, filters and light give the nominal ratios "
-        "(default: the simulated rig)",
+        "(default: the rig of the session the HDR images were merged from, else the "
+        "simulated rig)",
     )
     sensitivity.add_argument(
         "--saturation",
@@ -134,8 +135,10 @@ def _register_dispersion(actions: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--min-purity",
         type=float,
-        default=0.9,
-        help="leave out bands with less in-band signal than this fraction (default 0.9)",
+        default=None,
+        help="leave out bands with less in-band signal than this fraction (default 0.8); "
+        "the fraction is measured from the images (their brightness against the leakage the "
+        "rig predicts), so a stand-in camera response cannot drop a band the camera sees well",
     )
     parser.add_argument(
         "--vignetting",
@@ -157,11 +160,10 @@ def _sensitivity(args: argparse.Namespace) -> int:
         nominal_channel_sensitivity,
         plot_channel_sensitivity,
     )
-    from labkit.rig import default_rig_path, load_rig
 
-    rig = load_rig(args.rig or default_rig_path())
     scenes = load_filtered_hdr(args.hdr, scenes=args.scene)
     images = [image for group in scenes.values() for image in group]
+    rig = _images_rig(args.rig, images, default=True)
     measured = channel_sensitivity(images, saturation=args.saturation)
     nominal = nominal_channel_sensitivity(rig)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -259,7 +261,12 @@ def _dispersion(args: argparse.Namespace) -> int:
     import numpy as np
 
     from calibration._hdr_inputs import load_scene_hdr
-    from calibration.dispersion_calibration import band_table, calibrate_dispersion, summary
+    from calibration.dispersion_calibration import (
+        MIN_PURITY,
+        band_table,
+        calibrate_dispersion,
+        summary,
+    )
     from calibration.plots import plot_keypoint_residuals, plot_model
 
     images = load_scene_hdr(args.hdr, args.scene)
@@ -274,7 +281,7 @@ def _dispersion(args: argparse.Namespace) -> int:
         keypoints=args.keypoints,
         direction=args.direction,
         bands=bands,
-        min_purity=args.min_purity,
+        min_purity=MIN_PURITY if args.min_purity is None else args.min_purity,
         vignetting=args.vignetting,
         rng=np.random.default_rng(args.seed),
         workers=args.workers,
@@ -302,22 +309,32 @@ def _dispersion(args: argparse.Namespace) -> int:
 
 
 def _rig_bands(rig_path: Path | None, images) -> dict:
-    """Effective band wavelengths from --rig or from the session the images came from."""
+    """Effective band wavelengths, measured from the images with the rig's filters and light."""
     from calibration.bands import filter_bands
+
+    return filter_bands(_images_rig(rig_path, images), images=images)
+
+
+def _images_rig(rig_path: Path | None, images, *, default: bool = False):
+    """The rig of --rig, else that of the session the HDR images were merged from.
+
+    With `default`, images that name no readable session get the simulated rig.
+    """
     from labkit.errors import DataError
-    from labkit.rig import load_rig
+    from labkit.rig import default_rig_path, load_rig
     from labkit.session import Session
 
     if rig_path is not None:
-        return filter_bands(load_rig(rig_path))
+        return load_rig(rig_path)
     sessions = {image.labkit.get("session") for image in images} - {None}
     for session in sorted(sessions):
         try:
-            return filter_bands(Session.open(session).rig)
+            return Session.open(session).rig
         except DataError:
             continue
+    if default:
+        return load_rig(default_rig_path())
     raise DataError(
-        "effective band wavelengths need the rig, but the HDR images name no readable session "
-        f"({', '.join(sorted(sessions)) or 'none recorded'}); pass --rig RIG.yaml or "
-        "--wavelengths nominal"
+        "this needs the rig, but the HDR images name no readable session "
+        f"({', '.join(sorted(sessions)) or 'none recorded'}); pass --rig RIG.yaml"
     )

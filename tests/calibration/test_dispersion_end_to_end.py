@@ -16,7 +16,7 @@ from _helpers import write_rig
 
 from calibration._hdr_inputs import load_scene_hdr
 from calibration.bands import filter_bands
-from calibration.dispersion_calibration import calibrate_dispersion
+from calibration.dispersion_calibration import MIN_PURITY, calibrate_dispersion
 from labkit.bench.calibrate import model_error
 from labkit.hdr import run_hdr
 from labkit.protocol import Engine
@@ -24,6 +24,7 @@ from labkit.protocol.hardware import open_hardware
 from labkit.rig import load_rig
 from labkit.session import Session
 from labkit.sim import SimulatedRig
+from labkit.spectra import camera_response
 
 SHAPE = (256, 320)
 
@@ -153,3 +154,44 @@ def test_vignetting_correction_leaves_the_model_unchanged(disk_hdr, polynomial_d
     _assert_models_agree(
         polynomial_disks.model, corrected.model, _grid_between(polynomial_disks), tolerance_px=0.02
     )
+
+
+def test_band_purity_measured_from_the_images_matches_the_simulated_camera(disk_hdr) -> None:
+    """On the simulator the rig's response is the truth: images and response agree."""
+    rig, _, images = disk_hdr
+    measured = filter_bands(rig, images=images)
+    assert {band.source for band in measured.values()} == {"images"}
+    for name, band in measured.items():
+        assert band.purity == pytest.approx(band.response_purity, abs=0.07), name
+        assert band.brightness == pytest.approx(1.0, abs=0.2), name
+        assert (band.purity >= MIN_PURITY) == (band.response_purity >= MIN_PURITY), name
+    assert {name for name, band in measured.items() if band.purity < MIN_PURITY} == {"400", "700"}
+
+
+def test_a_stand_in_response_cannot_drop_a_band_the_camera_sees_well(disk_hdr, tmp_path) -> None:
+    """Plant a stand-in that underrates the camera a hundredfold above 625 nm: the 650 nm band
+    looks leak-dominated to the response but is as bright as ever in its image, so the
+    images keep it, at its true effective wavelength, and the table says why."""
+    rig, _, images = disk_hdr
+    truth = filter_bands(rig)
+    response = camera_response(rig.response_source()).select(["R", "G", "B"])
+    scale = np.where(response.wavelengths > 625, 0.01, 1.0)[:, None]
+    csv = tmp_path / "stand_in.csv"
+    rows = ["wavelength_nm,R,G,B"] + [
+        f"{w:g}," + ",".join(f"{v:.8g}" for v in values)
+        for w, values in zip(response.wavelengths, response.values * scale, strict=True)
+    ]
+    csv.write_text("\n".join(rows) + "\n")
+    camera = rig.camera.model_copy(update={"response": str(csv)})
+    stand_in = rig.model_copy(update={"camera": camera})
+    predicted = filter_bands(stand_in)
+    measured = filter_bands(stand_in, images=images)
+    assert predicted["650"].purity < MIN_PURITY  # the stand-in alone would drop it
+    assert measured["650"].purity == pytest.approx(truth["650"].purity, abs=0.03)
+    assert measured["650"].effective_nm == pytest.approx(truth["650"].effective_nm, abs=2.0)
+    assert measured["650"].brightness > 20
+    result = calibrate_dispersion(
+        images, reference="600", bands=measured, keypoints="registration", workers=1
+    )
+    row = next(band for band in result.bands if band.illumination == "650")
+    assert row.used and "by the images" in row.reason and "as bright as predicted" in row.reason

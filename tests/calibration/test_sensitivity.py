@@ -14,7 +14,13 @@ from calibration import (
     nominal_channel_sensitivity,
     plot_channel_sensitivity,
 )
-from calibration.sensitivity import neighbour_pairs, smooth_unsaturated_mask
+from calibration.bands import filter_bands
+from calibration.sensitivity import (
+    is_sensitivity_file,
+    load_response,
+    neighbour_pairs,
+    smooth_unsaturated_mask,
+)
 from labkit.cfa import CFA_LAYOUTS, channel_index, mosaic
 from labkit.errors import ConfigError, DataError
 from labkit.io.exr import RawImage
@@ -310,3 +316,43 @@ def test_malformed_sensitivity_file_names_file_and_field(
     assert message.startswith(str(path)), message
     assert where in message, message
     assert "\n" not in message
+
+
+def test_a_measured_sensitivity_is_a_camera_response_sampled_at_its_bands(tmp_path: Path):
+    table = example_table()
+    table.r_over_g[0] = 0.02  # the example's unreliable band: a finite ratio, used as is
+    table.to_yaml(tmp_path / "sensitivity.yaml")
+    table.to_csv(tmp_path / "sensitivity.csv")
+    for path in (tmp_path / "sensitivity.yaml", tmp_path / "sensitivity.csv"):
+        assert is_sensitivity_file(path)
+        response = load_response(path)
+        assert response.labels == ("R", "G", "B")
+        np.testing.assert_array_equal(response.wavelengths, table.wavelengths_nm)
+        np.testing.assert_array_equal(response.values[:, 0], table.r_over_g)
+        np.testing.assert_array_equal(response.values[:, 1], 1.0)
+        np.testing.assert_array_equal(response.values[:, 2], table.b_over_g)
+    write_response_csv(camera_response("Nikon 5100 (NPL)"), tmp_path / "curve.csv")
+    assert not is_sensitivity_file(tmp_path / "curve.csv")
+    np.testing.assert_array_equal(
+        load_response(tmp_path / "curve.csv").values, camera_response(tmp_path / "curve.csv").values
+    )
+    assert load_response("Nikon 5100 (NPL)").labels == ("R", "G", "B")
+    table.r_over_g[1] = np.nan
+    table.reliable_r[1] = False
+    with pytest.raises(DataError, match=r"r_over_g at 550 nm is unknown"):
+        table.as_response()
+
+
+def test_a_rig_can_name_its_measured_sensitivity(make_rig, tmp_path: Path) -> None:
+    """``camera.response: sensitivity.yaml`` (relative to the rig file) reaches every user."""
+    rig_file = make_rig(**{"camera.response": "sensitivity.yaml"})
+    table = nominal_channel_sensitivity(load_rig(make_rig()))
+    table.to_yaml(rig_file.parent / "sensitivity.yaml")
+    rig = load_rig(rig_file)
+    assert rig.response_source() == str(rig_file.parent / "sensitivity.yaml")
+    bands = filter_bands(rig)  # purity and effective wavelengths from the sampled map
+    assert set(bands) == {"400", "450", "500", "550", "600", "650", "700"}
+    curve = filter_bands(load_rig(make_rig()))  # the continuous response it was made from
+    for name in ("450", "500", "550", "600", "650"):
+        assert bands[name].effective_nm == pytest.approx(curve[name].effective_nm, abs=3.0), name
+        assert bands[name].purity > 0.9, name
