@@ -47,7 +47,7 @@ from reconstruction.operators import (
     SpectralBasis,
     dispersion_samples,
 )
-from reconstruction.operators.basis import choose_bands
+from reconstruction.operators.basis import choose_bands, sensitive_range
 from reconstruction.operators.dispersion import keys_kernel
 
 
@@ -82,10 +82,17 @@ class LatentSpace:
     def spectral(
         cls, response: Spectra, centres_nm: np.ndarray | None = None, *, kernel: str = "gaussian"
     ) -> LatentSpace:
-        """Spectral latent space: bands from :func:`choose_bands` unless `centres_nm` given."""
+        """Spectral latent space: bands from :func:`choose_bands` unless `centres_nm` given.
+
+        With `centres_nm`, the response needs no bandlimit (a sensor map sampled at a few
+        bands, whose Green is constant, serves).
+        """
         response = _rgb(response)
-        selection = choose_bands(response)
-        centres = selection.centres_nm if centres_nm is None else np.asarray(centres_nm, float)
+        if centres_nm is None:
+            selection = choose_bands(response)
+            centres, sensitive = selection.centres_nm, selection.support_nm
+        else:
+            centres, sensitive = np.asarray(centres_nm, float), sensitive_range(response)
         if centres.ndim != 1 or centres.size < 2:
             raise DataError(f"need ≥ 2 band centres (nm), got {centres!r}")
         lo, hi = response.domain
@@ -96,10 +103,7 @@ class LatentSpace:
                 "response measured over them"
             )
         SpectralBasis((1, 1), centres, centres, kernel=kernel)  # validates spacing etc.
-        support = (
-            min(selection.support_nm[0], centres[0]),
-            max(selection.support_nm[1], centres[-1]),
-        )
+        support = (min(sensitive[0], centres[0]), max(sensitive[1], centres[-1]))
         return cls("spectral", centres, response, kernel, np.ones(centres.size), support)
 
     @classmethod

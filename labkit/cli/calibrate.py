@@ -312,10 +312,13 @@ def _rig_bands(rig_path: Path | None, images) -> dict:
     """Effective band wavelengths, measured from the images with the rig's filters and light."""
     from calibration.bands import filter_bands
 
-    return filter_bands(_images_rig(rig_path, images), images=images)
+    rig = _images_rig(rig_path, images, hint="pass --rig RIG.yaml or --wavelengths nominal")
+    return filter_bands(rig, images=images)
 
 
-def _images_rig(rig_path: Path | None, images, *, default: bool = False):
+def _images_rig(
+    rig_path: Path | None, images, *, default: bool = False, hint: str = "pass --rig RIG.yaml"
+):
     """The rig of --rig, else that of the session the HDR images were merged from.
 
     With `default`, images that name no readable session get the simulated rig.
@@ -336,5 +339,5 @@ def _images_rig(rig_path: Path | None, images, *, default: bool = False):
         return load_rig(default_rig_path())
     raise DataError(
         "this needs the rig, but the HDR images name no readable session "
-        f"({', '.join(sorted(sessions)) or 'none recorded'}); pass --rig RIG.yaml"
+        f"({', '.join(sorted(sessions)) or 'none recorded'}); {hint}"
     )

@@ -9,6 +9,9 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
+
+from labkit.cfa import CFA_LAYOUTS
 
 
 def register(commands: argparse._SubParsersAction) -> None:
@@ -22,13 +25,29 @@ def register(commands: argparse._SubParsersAction) -> None:
     warp = actions.add_parser(
         "warp",
         help="warp colour channels or spectral bands onto the reference (Rudakova–Monasse)",
-        description="A raw (mosaic) EXR is demosaiced bilinearly and its Red and Blue "
+        description="A raw Bayer mosaic is demosaiced bilinearly and its Red and Blue "
         "channels are warped onto Green with a colour-channel model (`--reference G`); the "
-        "result is an RGB EXR plus a PNG preview. A spectral EXR has every band warped onto "
-        "the reference band with a spectral model; the result is a spectral EXR. Either model "
+        "result is an RGB EXR plus a PNG preview. The mosaic is a raw EXR (from `labkit "
+        "hdr`, or from other software: channel 'raw' or the only channel), a single-channel "
+        "uint8/uint16/float TIFF or PNG (integers scaled by the container's maximum) or a "
+        "camera raw file read by LibRaw (DNG, NEF, CR2, ARW, …; black level subtracted; "
+        "Bayer sensors only); --cfa gives the layout of a file that does not record it. A "
+        "spectral EXR has every band warped onto the reference band with a spectral model; "
+        "the result is a spectral EXR. Either model "
         "direction works (a to_reference model is inverted by fixed-point iteration).",
     )
-    warp.add_argument("image", type=Path, help="raw EXR (from `labkit hdr`) or spectral EXR")
+    warp.add_argument(
+        "image",
+        type=Path,
+        help="raw Bayer mosaic (raw EXR, single-channel TIFF/PNG, camera raw file) or spectral EXR",
+    )
+    warp.add_argument(
+        "--cfa",
+        choices=CFA_LAYOUTS,
+        default=None,
+        help="Bayer layout (top-left 2×2 block, row by row) of a raw mosaic that does not "
+        "record it; an error if it contradicts the file's own",
+    )
     warp.add_argument("--model", type=Path, required=True, help="dispersion model YAML")
     warp.add_argument("--out", type=Path, required=True, help="corrected EXR to write")
     warp.add_argument(
@@ -40,11 +59,10 @@ def register(commands: argparse._SubParsersAction) -> None:
 def _warp(args: argparse.Namespace) -> int:
     from calibration.dispersion_model import load_dispersion_model
     from calibration.warp import correct_channels, correct_spectral
-    from labkit.errors import DataError
+    from labkit.errors import ConfigError, DataError
     from labkit.io import (
         demosaic_bilinear,
-        read_raw_exr,
-        read_spectral_exr,
+        read_mosaic,
         to_display,
         write_png,
         write_rgb_exr,
@@ -55,9 +73,10 @@ def _warp(args: argparse.Namespace) -> int:
     model = load_dispersion_model(args.model)
     provenance = {"input": str(args.image), "dispersion_model": str(args.model)}
     try:
-        raw = read_raw_exr(args.image)
-    except DataError as error:
-        if "no 'raw' channel" not in str(error):
+        raw = read_mosaic(args.image, cfa=args.cfa)
+    except DataError:  # a spectral EXR, or the mosaic's error stands
+        spectral = _spectral_or_none(args.image)
+        if spectral is None:
             raise
         raw = None
     if raw is not None:
@@ -74,7 +93,10 @@ def _warp(args: argparse.Namespace) -> int:
         write_png(preview, to_display(corrected))
         print(f"warped R and B onto G with {args.model}; wrote {args.out} and {preview}")
         return 0
-    spectral = read_spectral_exr(args.image)
+    if args.cfa is not None:
+        raise ConfigError(
+            f"{args.image} is a spectral image: --cfa applies to raw mosaics only; drop it"
+        )
     if model.variables != "xylambda":
         raise DataError(
             f"{args.image} is a spectral image: warping its bands needs a spectral model "
@@ -97,3 +119,16 @@ def _warp(args: argparse.Namespace) -> int:
     )
     print(f"warped {cube.shape[2]} bands with {args.model}; wrote {args.out}")
     return 0
+
+
+def _spectral_or_none(path: Path) -> Any:
+    """The spectral image in `path` (a labkit spectral EXR), or None if it is not one."""
+    from labkit.errors import DataError
+    from labkit.io import read_spectral_exr
+
+    if path.suffix.lower() != ".exr" or not path.is_file():
+        return None
+    try:
+        return read_spectral_exr(path)
+    except DataError:
+        return None

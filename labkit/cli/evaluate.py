@@ -1,4 +1,4 @@
-"""``labkit evaluate RAW.exr --out DIR``: baselines and reconstructions scored side by side."""
+"""``labkit evaluate RAW --out DIR``: baselines and reconstructions scored side by side."""
 
 from __future__ import annotations
 
@@ -6,8 +6,15 @@ import argparse
 import json
 from pathlib import Path
 
+from labkit.cfa import CFA_LAYOUTS
+
 DESCRIPTION = """\
-Score colour images of one raw image (thesis §4.4, §4.6). Runs the demosaicing baselines
+Score colour images of one raw image (thesis §4.4, §4.6). RAW is a raw Bayer mosaic: a raw
+EXR (from `labkit hdr`, or from other software: channel 'raw' or the only channel), a
+single-channel uint8/uint16/float TIFF or PNG (integers scaled by the container's maximum)
+or a camera raw file read by LibRaw (DNG, NEF, CR2, CR3, ARW, ORF, RW2, PEF, …; black level
+subtracted; Bayer sensors only); --cfa gives the Bayer layout of a file that does not record
+it. Runs the demosaicing baselines
 (bilinear, Malvar 2004, Menon 2007; with --colour-dispersion each also followed by warping
 Red and Blue onto Green), adds the images given with --image (e.g. the raw_colour.exr of
 `labkit reconstruct`), and measures:
@@ -33,7 +40,19 @@ def register(commands: argparse._SubParsersAction) -> None:
         description=DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("raw", type=Path, help="raw (HDR) mosaic EXR")
+    parser.add_argument(
+        "raw",
+        type=Path,
+        help="raw Bayer mosaic: raw (HDR) EXR, single-channel TIFF/PNG (with --cfa) or camera "
+        "raw file (DNG, NEF, CR2, ARW, …)",
+    )
+    parser.add_argument(
+        "--cfa",
+        choices=CFA_LAYOUTS,
+        default=None,
+        help="Bayer layout (top-left 2×2 block, row by row) for a file that does not record "
+        "it; an error if it contradicts the file's own",
+    )
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     parser.add_argument(
         "--baselines",
@@ -67,13 +86,11 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 def _evaluate(args: argparse.Namespace) -> int:
     from labkit.errors import DataError
-    from labkit.io import display_on_one_scale, read_raw_exr, write_png, write_text_atomic
+    from labkit.io import display_on_one_scale, read_mosaic, write_png, write_text_atomic
     from labkit.report import Report, file_stem
     from reconstruction import baseline_images, evaluate
 
-    raw = read_raw_exr(args.raw)
-    if raw.cfa is None:
-        raise DataError(f"{args.raw}: no 'cfa' header; not a raw mosaic written by labkit")
+    raw = read_mosaic(args.raw, cfa=args.cfa)
     images_in = dict(_named_image(spec, raw.raw.shape) for spec in args.image)
     methods = [] if args.baselines == "none" else [m.strip() for m in args.baselines.split(",")]
     model = None

@@ -1,4 +1,7 @@
-"""``labkit reconstruct RAW.exr (--rig RIG | --response CSV) --out DIR``: thesis problem (3.1).
+"""``labkit reconstruct RAW (--rig RIG | --response CSV) --out DIR``: thesis problem (3.1).
+
+RAW is any raw Bayer mosaic :func:`labkit.io.read_mosaic` reads: a raw EXR (from
+``labkit hdr`` or other software), a single-channel TIFF/PNG mosaic or a camera raw file.
 
 A thin layer over :func:`reconstruction.reconstruct`: every option is checked (and every
 input read) before any work starts or anything is written, then the spectral image, its
@@ -18,6 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from labkit.cfa import CFA_LAYOUTS
 from labkit.errors import ConfigError, DataError
 
 #: What ``--scheduler`` accepts besides ``tcp://host:port``.
@@ -33,9 +37,14 @@ def register(commands: argparse._SubParsersAction) -> None:
     parser = commands.add_parser(
         "reconstruct",
         help="spectral image from one Bayer raw image, free of lateral chromatic aberration",
-        description="Reconstruct a spectral image straight from a raw (mosaic) EXR by solving "
+        description="Reconstruct a spectral image straight from a raw Bayer mosaic by solving "
         "thesis problem (3.1), A = M·Ω·Φ·B with a regularising prior, patch by patch on Dask. "
-        "The camera response (and CFA layout) come from --rig or --response; --dispersion "
+        "RAW is a raw EXR (from `labkit hdr`, or from other software: channel 'raw' or the "
+        "only channel), a single-channel uint8/uint16/float TIFF or PNG mosaic (integers "
+        "scaled by the container's maximum), or a camera raw file read by LibRaw (DNG, NEF, "
+        "CR2, CR3, ARW, ORF, RW2, PEF, …; black level subtracted, scaled to the white level; "
+        "Bayer sensors only). The camera response comes from --rig or --response, the CFA "
+        "layout from the file, else --cfa, else the rig; --dispersion "
         "adds the lens' lateral chromatic aberration (a to_reference model). Writes "
         "DIR/spectral.exr (one band per --bands centre, in the raw image's units per nm), "
         "DIR/raw_colour.exr (the aberration-free image in raw camera colour), "
@@ -44,7 +53,19 @@ def register(commands: argparse._SubParsersAction) -> None:
         "arguments). With --latent colour the latent image is raw colour (thesis (3.27)) and "
         "no spectral.exr is written. Bad input is refused before anything is written.",
     )
-    parser.add_argument("raw", type=Path, help="raw mosaic EXR (from `labkit hdr`)")
+    parser.add_argument(
+        "raw",
+        type=Path,
+        help="raw Bayer mosaic: raw EXR (e.g. from `labkit hdr`), single-channel TIFF/PNG "
+        "(with --cfa) or camera raw file (DNG, NEF, CR2, ARW, …)",
+    )
+    parser.add_argument(
+        "--cfa",
+        choices=CFA_LAYOUTS,
+        default=None,
+        help="Bayer layout (top-left 2×2 block, row by row) for a file that does not record "
+        "it (default: the rig's with --rig); an error if it contradicts the file's own",
+    )
     parser.add_argument(
         "--rig", type=Path, default=None, help="rig YAML: camera response and CFA layout"
     )
@@ -52,8 +73,10 @@ def register(commands: argparse._SubParsersAction) -> None:
         "--response",
         default=None,
         metavar="FILE.csv",
-        help="camera response CSV (wavelength_nm,R,G,B) or a colour-science dataset name, "
-        "instead of --rig (the CFA layout then comes from the raw EXR)",
+        help="camera response CSV (wavelength_nm,R,G,B), a colour-science dataset name, or "
+        "the sensitivity.yaml/.csv of `labkit calibrate sensitivity` (the thesis' sensor map: "
+        "the bands default to its bands), instead of --rig (the CFA layout then comes from "
+        "the raw file or --cfa)",
     )
     parser.add_argument(
         "--bands",
@@ -229,7 +252,7 @@ def _reconstruct(args: argparse.Namespace) -> int:
 # -- checking -------------------------------------------------------------------------
 def _prepare(args: argparse.Namespace) -> _Job:
     """Read and check every input and option; raises before anything is written."""
-    from labkit.io import read_raw_exr
+    from labkit.io import read_mosaic
     from reconstruction.operators.dispersion import INTERPOLATIONS
     from reconstruction.reconstruct import CORRECTIONS, LATENTS, REFERENCES
 
@@ -264,30 +287,31 @@ def _prepare(args: argparse.Namespace) -> _Job:
 
     if not args.raw.is_file():
         raise DataError(
-            f"raw image {args.raw} does not exist; give a raw mosaic EXR (from `labkit hdr`)"
+            f"raw image {args.raw} does not exist; give a raw Bayer mosaic (raw EXR, "
+            "single-channel TIFF/PNG or camera raw file)"
         )
-    try:
-        raw = read_raw_exr(args.raw)
-    except DataError as error:
-        raise DataError(
-            f"{error} (labkit reconstruct needs a raw mosaic EXR, e.g. from `labkit hdr`)"
-        ) from None
+    rig = None
+    if args.rig is not None:
+        from labkit.rig import load_rig
+
+        rig = load_rig(args.rig)
+        if args.cfa is not None and args.cfa != rig.cfa:
+            raise ConfigError(
+                f"CFA layouts disagree: --cfa says {args.cfa}, {args.rig} says {rig.cfa} "
+                f"(camera.pixel_format {rig.camera.pixel_format}); use the rig the image was "
+                "taken with"
+            )
+    if args.cfa is None and rig is not None:  # the rig's layout for files that name none
+        raw = read_mosaic(args.raw, cfa=rig.cfa, cfa_from=str(args.rig))
+    else:
+        raw = read_mosaic(args.raw, cfa=args.cfa)
     from reconstruction.reconstruct import check_dispersion_model, check_raw
 
     check_raw(raw.raw, where=f"raw image {args.raw}")
 
     cfa = raw.cfa
     response, source = None, None
-    if args.rig is not None:
-        from labkit.rig import load_rig
-
-        rig = load_rig(args.rig)
-        if rig.cfa != raw.cfa:
-            raise DataError(
-                f"CFA layouts disagree: {args.raw} says {raw.cfa}, {args.rig} says {rig.cfa} "
-                f"(camera.pixel_format {rig.camera.pixel_format}); use the rig the image was "
-                "taken with"
-            )
+    if rig is not None:
         source = rig.response_source()
         response = _response(source, f"{args.rig}: camera.response")
     elif args.response is not None:
@@ -299,9 +323,14 @@ def _prepare(args: argparse.Namespace) -> _Job:
 
     channels = 3
     if latent == "spectral":
-        space = _latent_space(LatentSpace, response, None, f"camera response {source}")
+        where = f"--bands {args.bands}"
+        if bands is None and _is_sensor_map(source):
+            bands = [float(w) for w in response.wavelengths]  # the map's own bands
+            where = f"the bands of {source}"
+        else:
+            space = _latent_space(LatentSpace, response, None, f"camera response {source}")
         if bands is not None:
-            space = _latent_space(LatentSpace, response, bands, f"--bands {args.bands}")
+            space = _latent_space(LatentSpace, response, bands, where)
         channels = space.channels
     if args.prior not in PRIORS:
         raise ConfigError(
@@ -467,12 +496,18 @@ def _check_out(out: Path) -> None:
 
 
 def _response(source: str, where: str) -> Any:
-    from labkit.spectra import camera_response
+    from calibration.sensitivity import load_response
 
     try:
-        return camera_response(source)
+        return load_response(source)
     except DataError as error:
         raise DataError(f"{where}: {error}") from None
+
+
+def _is_sensor_map(source: str | None) -> bool:
+    from calibration.sensitivity import is_sensitivity_file
+
+    return source is not None and is_sensitivity_file(source)
 
 
 def _latent_space(latent_space: Any, response: Any, bands: list[float] | None, where: str) -> Any:

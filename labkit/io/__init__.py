@@ -1,4 +1,5 @@
-"""Files: atomic writes, raw TIFF frames, OpenEXR raw/spectral images, PNG previews, masks."""
+"""Files: atomic writes, raw TIFF frames, OpenEXR raw/spectral images, raw mosaics from other
+software and cameras, PNG previews, masks."""
 
 from labkit.io.atomic import atomic_path, atomic_write, fsync_directory, write_text_atomic
 from labkit.io.exr import (
@@ -12,6 +13,7 @@ from labkit.io.exr import (
     write_rgb_exr,
     write_spectral_exr,
 )
+from labkit.io.mosaic import MOSAIC_SUFFIXES, read_mosaic
 from labkit.io.plain import to_plain
 from labkit.io.plane import read_plane
 from labkit.io.preview import (
@@ -25,6 +27,7 @@ from labkit.io.preview import (
 from labkit.io.tiff import encode_raw_tiff, read_raw_tiff, write_raw_tiff
 
 __all__ = [
+    "MOSAIC_SUFFIXES",
     "RawImage",
     "SpectralImage",
     "atomic_path",
@@ -35,6 +38,7 @@ __all__ = [
     "encode_raw_tiff",
     "fsync_directory",
     "raw_preview",
+    "read_mosaic",
     "read_plane",
     "read_raw_exr",
     "read_raw_tiff",

@@ -15,6 +15,7 @@ Both are written atomically: a crash never leaves a partial file under the final
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -39,10 +40,12 @@ class RawImage:
         The mosaic; for HDR images, the fraction of saturation at `exposure_s`.
     cfa : str
         Bayer layout, e.g. ``"GBRG"``.
-    exposure_s : float
-        Exposure the values refer to, s.
+    exposure_s : float or None
+        Exposure the values refer to, s; None when unknown (an image from other software
+        that does not record it, see :func:`labkit.io.read_mosaic`).
     illumination : str
-        Illumination name (slider position), e.g. ``"unfiltered"`` or ``"550"``.
+        Illumination name (slider position), e.g. ``"unfiltered"`` or ``"550"``; ``""``
+        when unknown.
     wavelength_nm : float or None
         Centre wavelength of the bandpass filter, nm (None for unfiltered light).
     variance : ndarray (rows, cols) float32 or None
@@ -53,7 +56,7 @@ class RawImage:
 
     raw: np.ndarray
     cfa: str
-    exposure_s: float
+    exposure_s: float | None
     illumination: str
     wavelength_nm: float | None = None
     variance: np.ndarray | None = None
@@ -75,7 +78,11 @@ def band_name(wavelength_nm: float) -> str:
 
 
 def write_raw_exr(path: str | Path, image: RawImage) -> None:
-    """Write a :class:`RawImage` as an OpenEXR file, atomically."""
+    """Write a :class:`RawImage` as an OpenEXR file, atomically.
+
+    The image's `exposure_s` must be known (a positive number of seconds): labkit's raw
+    EXRs always record it.
+    """
     import OpenEXR
 
     raw = _checked_plane(path, "raw", image.raw)
@@ -85,9 +92,11 @@ def write_raw_exr(path: str | Path, image: RawImage) -> None:
         if variance.shape != raw.shape:
             raise DataError(f"{path}: variance {variance.shape} does not match raw {raw.shape}")
         channels["variance"] = variance
-    exposure = float(image.exposure_s)
+    exposure = math.nan if image.exposure_s is None else float(image.exposure_s)
     if not np.isfinite(exposure) or exposure <= 0:
-        raise DataError(f"{path}: exposure_s must be a positive number of seconds, got {exposure}")
+        raise DataError(
+            f"{path}: exposure_s must be a positive number of seconds, got {image.exposure_s}"
+        )
     provenance = {
         "format": FORMAT_VERSION,
         "kind": "raw",
@@ -109,7 +118,11 @@ def write_raw_exr(path: str | Path, image: RawImage) -> None:
 
 
 def read_raw_exr(path: str | Path) -> RawImage:
-    """Read a raw EXR written by :func:`write_raw_exr`."""
+    """Read a raw EXR written by :func:`write_raw_exr` (its `exposure_s` is always set).
+
+    EXRs from other software (no ``cfa`` or ``exposure_s`` attribute) and other kinds of
+    raw file are read by :func:`labkit.io.read_mosaic`.
+    """
     header, channels = _read(path)
     if "raw" not in channels:
         raise DataError(

@@ -177,19 +177,7 @@ def choose_bands(
             f"camera response has {response.wavelengths.size} samples; need ≥ 4 to estimate "
             "its bandlimit"
         )
-    magnitude = np.abs(response.values)
-    peaks = magnitude.max(axis=0)
-    if np.any(peaks <= 0):
-        dead = [label for label, p in zip(response.labels, peaks, strict=True) if p <= 0]
-        raise DataError(
-            f"camera response channel(s) {dead} are zero everywhere; drop them with "
-            ".select([...]) before choosing bands"
-        )
-    sensitive = np.any(magnitude >= support_fraction * peaks, axis=1)
-    indices = np.flatnonzero(sensitive)
-    lo = float(response.wavelengths[indices[0]])
-    hi = float(response.wavelengths[indices[-1]])
-
+    lo, hi = sensitive_range(response, support_fraction=support_fraction)
     _, values, step = _uniform_response(response)
     bandlimit = _bandlimit(values, step, power_fraction)
     spacing = 0.5 / bandlimit
@@ -202,6 +190,27 @@ def choose_bands(
             f"spacing ({spacing:.3g} nm); the camera cannot support a spectral basis"
         )
     return BandSelection((lo, hi), bandlimit, centres)
+
+
+def sensitive_range(response: Spectra, *, support_fraction: float = 0.05) -> tuple[float, float]:
+    """First and last wavelength (nm) where some channel reaches `support_fraction` of its peak.
+
+    Raises
+    ------
+    DataError
+        A channel is zero everywhere.
+    """
+    magnitude = np.abs(response.values)
+    peaks = magnitude.max(axis=0)
+    if np.any(peaks <= 0):
+        dead = [label for label, p in zip(response.labels, peaks, strict=True) if p <= 0]
+        raise DataError(
+            f"camera response channel(s) {dead} are zero everywhere; drop them with "
+            ".select([...]) before choosing bands"
+        )
+    sensitive = np.any(magnitude >= support_fraction * peaks, axis=1)
+    indices = np.flatnonzero(sensitive)
+    return float(response.wavelengths[indices[0]]), float(response.wavelengths[indices[-1]])
 
 
 def gaussian_sigma_nm(spacing_nm: float, power_fraction: float = KERNEL_POWER_FRACTION) -> float:

@@ -360,3 +360,38 @@ def test_out_that_is_a_file_is_refused(inputs, tmp_path: Path, capsys) -> None:
     assert main(args) == 2
     assert "exists and is not a folder" in capsys.readouterr().err
     assert out.read_text() == "keep me"
+
+
+def test_a_measured_sensor_map_is_a_response_with_its_own_bands(tmp_path: Path, capsys) -> None:
+    """``--response sensitivity.yaml`` (labkit calibrate sensitivity): the thesis' sensor map.
+
+    The raw image is made as Algorithm 13 makes its synthetic raw images, Σ_b (r_b, 1, b_b)·M_b
+    from smooth band images M_b; the reconstruction takes the map's four bands and its data
+    term reproduces that raw image."""
+    from calibration import ChannelSensitivity
+
+    wavelengths = np.array([450.0, 500.0, 550.0, 600.0])
+    r, b = np.array([0.3, 0.09, 0.05, 2.5]), np.array([4.8, 0.9, 0.07, 0.02])
+    n = wavelengths.size
+    table = ChannelSensitivity(
+        wavelengths, tuple(f"{w:g}" for w in wavelengths), r, b, np.zeros(n), np.zeros(n),
+        np.full(n, np.nan), np.full(n, np.nan), np.ones(n, bool), np.ones(n, bool),
+        ("",) * n, ("",) * n,
+    )  # fmt: skip
+    table.to_yaml(tmp_path / "sensitivity.yaml")
+    yy, xx = np.mgrid[: SHAPE[0], : SHAPE[1]] / np.array(SHAPE)[:, None, None]
+    bands = np.stack([0.05 * (1 + 0.5 * np.sin(2 * np.pi * (xx + k / 4)) + yy) for k in range(n)])
+    colour = np.einsum("bc,bij->ijc", np.column_stack([r, np.ones(n), b]), bands)
+    raw = _write_raw(tmp_path / "raw.exr", colour)
+    out = tmp_path / "out"
+    args = ["reconstruct", str(raw), "--response", str(tmp_path / "sensitivity.yaml"),
+            "--weights", "fixed:0.0001", "--no-nonneg", "--spectral-smoothness", "0",
+            "--patch-px", "32", "--out", str(out)]  # fmt: skip
+    assert main(args) == 0
+    spectral = read_spectral_exr(out / "spectral.exr")
+    np.testing.assert_array_equal(spectral.wavelengths_nm, wavelengths)
+    assert spectral.labkit["response"] == str(tmp_path / "sensitivity.yaml")
+    raw_colour = _read_rgb_exr(out / "raw_colour.exr")
+    np.testing.assert_allclose(
+        mosaic(raw_colour, "GBRG"), mosaic(colour, "GBRG"), rtol=5e-3, atol=1e-4
+    )
