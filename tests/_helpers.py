@@ -118,3 +118,26 @@ def planted_dispersion_model(
         fields=fields,
         region=CalibratedRegion.from_points(x, y, wavelengths),
     )
+
+
+def lens_model_file(path: Path, shape: tuple[int, int], direction: str = "from_reference"):
+    """A small polynomial spectral model (≤ 1 px lateral colour) fitted to the simulated
+    lens' exact displacements at 450–650 nm, referenced to 600 nm; saved to `path`."""
+    from calibration.keypoints import DispersionKeypoints
+    from calibration.polynomial import fit_polynomial_model
+    from labkit.sim.lens import Lens
+
+    lens = Lens(shape, max_shift_px=1.0)
+    gy, gx = np.mgrid[4 : shape[0] - 4 : 8, 4 : shape[1] - 4 : 8].astype(float)
+    parts = []
+    for w in (450.0, 500.0, 550.0, 600.0, 650.0):
+        dx, dy = lens.displacement(gx.ravel(), gy.ravel(), w)
+        parts.append((gx.ravel(), gy.ravel(), dx, dy, np.full(gx.size, w)))
+    x, y, dx, dy, w = (np.concatenate(c) for c in zip(*parts, strict=True))
+    keypoints = DispersionKeypoints(
+        x, y, dx, dy, reference=600.0, image_shape=shape, wavelength_nm=w
+    )
+    model = fit_polynomial_model(
+        keypoints, direction=direction, max_degree_xy=2, max_degree_lambda=2, folds=2
+    )
+    return model.save(path)

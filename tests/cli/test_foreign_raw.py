@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import tifffile
+from _helpers import lens_model_file
 from _raw_files import BLACK, SCALE, WHITE, X_TRANS, frame_dng, real_frame, write_dng
 
 from calibration.keypoints import DispersionKeypoints
@@ -200,20 +201,9 @@ def test_correct_warp_still_takes_spectral_exrs(tmp_path: Path, capsys) -> None:
     """A spectral EXR is no mosaic: its bands are warped (a flat cube stays flat); --cfa is
     refused for it."""
     from labkit.io import SpectralImage, write_spectral_exr
-    from labkit.sim.lens import Lens
 
     shape = (48, 64)
-    lens = Lens(shape, max_shift_px=1.0)
-    gy, gx = np.mgrid[4 : shape[0] - 4 : 8, 4 : shape[1] - 4 : 8].astype(float)
-    parts = []
-    for wavelength in (450.0, 500.0, 550.0, 600.0, 650.0):
-        dx, dy = lens.displacement(gx.ravel(), gy.ravel(), wavelength)
-        parts.append((gx.ravel(), gy.ravel(), dx, dy, np.full(gx.size, wavelength)))
-    x, y, dx, dy, w = (np.concatenate(c) for c in zip(*parts, strict=True))
-    keypoints = DispersionKeypoints(x, y, dx, dy, reference=600.0, image_shape=shape,
-                                    wavelength_nm=w)  # fmt: skip
-    model = fit_polynomial_model(keypoints, max_degree_xy=2, max_degree_lambda=2, folds=2)
-    model_path = model.save(tmp_path / "spectral.yaml")
+    model_path = lens_model_file(tmp_path / "spectral.yaml", shape)
     image = tmp_path / "cube.exr"
     cube = np.full((*shape, 2), 0.25, np.float32)
     write_spectral_exr(image, SpectralImage(cube, np.array([500.0, 600.0]), {}))

@@ -9,15 +9,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _helpers import lens_model_file
 from PIL import Image
 
-from calibration.keypoints import DispersionKeypoints
-from calibration.polynomial import fit_polynomial_model
 from labkit.cfa import mosaic
 from labkit.cli import build_parser, main
 from labkit.io import RawImage, read_spectral_exr, write_raw_exr, write_spectral_exr
 from labkit.io.exr import SpectralImage
-from labkit.sim.lens import Lens
 from labkit.spectra import camera_response
 from labkit.spectra.datasets import write_response_csv
 from reconstruction import PRIORS
@@ -49,21 +47,7 @@ def _write_raw(path: Path, colour: np.ndarray, cfa: str = "GBRG") -> Path:
 
 
 def _dispersion_model(path: Path, shape: tuple[int, int], direction: str = "to_reference"):
-    """A small polynomial spectral model (≤ 1 px lateral colour) fitted to exact keypoints."""
-    lens = Lens(shape, max_shift_px=1.0)
-    gy, gx = np.mgrid[4 : shape[0] - 4 : 8, 4 : shape[1] - 4 : 8].astype(float)
-    parts = []
-    for w in (450.0, 500.0, 550.0, 600.0, 650.0):
-        dx, dy = lens.displacement(gx.ravel(), gy.ravel(), w)
-        parts.append((gx.ravel(), gy.ravel(), dx, dy, np.full(gx.size, w)))
-    x, y, dx, dy, w = (np.concatenate(c) for c in zip(*parts, strict=True))
-    keypoints = DispersionKeypoints(
-        x, y, dx, dy, reference=600.0, image_shape=shape, wavelength_nm=w
-    )
-    model = fit_polynomial_model(
-        keypoints, direction=direction, max_degree_xy=2, max_degree_lambda=2, folds=2
-    )
-    return model.save(path)
+    return lens_model_file(path, shape, direction)
 
 
 @pytest.fixture(scope="module")
