@@ -150,7 +150,7 @@ def filter_bands(
             name, float(band.centre_nm), effective, spread, purity, response_purity=purity
         )
     if images:
-        bands.update(_measured(bands, parts, images, wavelengths))
+        bands.update(_measured(bands, parts, images))
     return bands
 
 
@@ -175,7 +175,6 @@ def _measured(
     bands: dict[str, FilterBand],
     parts: dict[str, _Parts],
     images: Sequence[RawImage],
-    wavelengths: np.ndarray,
 ) -> dict[str, FilterBand]:
     rates = {}
     for image in images:

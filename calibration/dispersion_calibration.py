@@ -309,9 +309,7 @@ def band_table(calibration: DispersionCalibration) -> str:
         nominal = "—" if band.nominal_nm is None else f"{band.nominal_nm:g}"
         effective = "—" if band.wavelength_nm is None else f"{band.wavelength_nm:.1f}"
         purity = "—" if band.purity is None else f"{band.purity:.1%}"
-        used = f"yes: {band.reason}" if band.used and band.reason else "yes"
-        if not band.used:
-            used = f"no: {band.reason}"
+        used = ("yes" if band.used else "no") + (f": {band.reason}" if band.reason else "")
         lines.append(f"{band.illumination:>10} {nominal:>9} {effective:>10} {purity:>7}  {used}")
     return "\n".join(lines)
 

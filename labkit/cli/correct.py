@@ -11,7 +11,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from labkit.cfa import CFA_LAYOUTS
+from labkit.cli._options import add_cfa_option
 
 
 def register(commands: argparse._SubParsersAction) -> None:
@@ -41,13 +41,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         type=Path,
         help="raw Bayer mosaic (raw EXR, single-channel TIFF/PNG, camera raw file) or spectral EXR",
     )
-    warp.add_argument(
-        "--cfa",
-        choices=CFA_LAYOUTS,
-        default=None,
-        help="Bayer layout (top-left 2×2 block, row by row) of a raw mosaic that does not "
-        "record it; an error if it contradicts the file's own",
-    )
+    add_cfa_option(warp)
     warp.add_argument("--model", type=Path, required=True, help="dispersion model YAML")
     warp.add_argument("--out", type=Path, required=True, help="corrected EXR to write")
     warp.add_argument(

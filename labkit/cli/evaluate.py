@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from labkit.cfa import CFA_LAYOUTS
+from labkit.cli._options import add_cfa_option
 
 DESCRIPTION = """\
 Score colour images of one raw image (thesis §4.4, §4.6). RAW is a raw Bayer mosaic: a raw
@@ -46,13 +46,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="raw Bayer mosaic: raw (HDR) EXR, single-channel TIFF/PNG (with --cfa) or camera "
         "raw file (DNG, NEF, CR2, ARW, …)",
     )
-    parser.add_argument(
-        "--cfa",
-        choices=CFA_LAYOUTS,
-        default=None,
-        help="Bayer layout (top-left 2×2 block, row by row) for a file that does not record "
-        "it; an error if it contradicts the file's own",
-    )
+    add_cfa_option(parser)
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     parser.add_argument(
         "--baselines",

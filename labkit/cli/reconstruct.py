@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from labkit.cfa import CFA_LAYOUTS
+from labkit.cli._options import add_cfa_option
 from labkit.errors import ConfigError, DataError
 
 #: What ``--scheduler`` accepts besides ``tcp://host:port``.
@@ -59,13 +59,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="raw Bayer mosaic: raw EXR (e.g. from `labkit hdr`), single-channel TIFF/PNG "
         "(with --cfa) or camera raw file (DNG, NEF, CR2, ARW, …)",
     )
-    parser.add_argument(
-        "--cfa",
-        choices=CFA_LAYOUTS,
-        default=None,
-        help="Bayer layout (top-left 2×2 block, row by row) for a file that does not record "
-        "it (default: the rig's with --rig); an error if it contradicts the file's own",
-    )
+    add_cfa_option(parser, default="the rig's with --rig")
     parser.add_argument(
         "--rig", type=Path, default=None, help="rig YAML: camera response and CFA layout"
     )

@@ -27,7 +27,6 @@ otherwise).
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +35,7 @@ import numpy as np
 from labkit.cfa import CFA_LAYOUTS, check_layout, layout_from_pixel_format
 from labkit.errors import ConfigError, DataError
 from labkit.io.exr import RawImage, _provenance, _read
+from labkit.io.tiff import description_metadata
 
 #: Suffixes of OpenEXR files.
 EXR_SUFFIXES = (".exr",)
@@ -253,11 +253,7 @@ def _read_tiff(path: Path) -> tuple[np.ndarray, dict[str, Any]]:
         raise DataError(
             f"{path}: {samples} samples per pixel; labkit needs a single-channel raw Bayer mosaic"
         )
-    try:
-        metadata = json.loads(description).get("labkit", {})
-    except (json.JSONDecodeError, AttributeError):
-        metadata = {}
-    return data, metadata if isinstance(metadata, dict) else {}
+    return data, description_metadata(description)
 
 
 def _read_png(path: Path) -> np.ndarray:

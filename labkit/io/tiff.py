@@ -67,11 +67,16 @@ def read_raw_tiff(path: str | Path) -> tuple[np.ndarray, dict[str, Any]]:
         raise DataError(f"raw frame {path} is not a readable TIFF ({error})") from None
     if image.ndim != 2:
         raise DataError(f"raw frame {path}: expected a 2-D mosaic, got shape {image.shape}")
+    return image, description_metadata(description)
+
+
+def description_metadata(description: str) -> dict[str, Any]:
+    """The labkit metadata of a TIFF ImageDescription ({} for other software's text)."""
     try:
         metadata = json.loads(description).get("labkit", {})
     except (json.JSONDecodeError, AttributeError):
-        metadata = {}
-    return image, metadata
+        return {}
+    return metadata if isinstance(metadata, dict) else {}
 
 
 def json_default(value: Any) -> Any:

@@ -27,12 +27,7 @@ import tifffile
 from labkit.errors import ConfigError, DataError
 from labkit.frame import DARK, Frame, FrameKey
 from labkit.rig import Rig
-from labkit.session.sample_format import (
-    SampleFacts,
-    decide_formats,
-    sample_facts,
-    stored_samples,
-)
+from labkit.session.sample_format import SampleFacts, decide_formats, stored_samples
 from labkit.session.store import Session
 
 _FIELD = re.compile(r"\{(\w+)\}")
@@ -217,8 +212,7 @@ def import_session(
             image = tifffile.imread(item.path)
         except Exception as error:  # tifffile raises many types on bad files
             raise DataError(f"{item.path} is not a readable TIFF ({error})") from None
-        facts[item.path] = sample_facts(image, name=str(item.path))
-        images[item.path] = stored_samples(image)
+        images[item.path], facts[item.path] = stored_samples(image, name=str(item.path))
     formats = decide_formats(
         facts,
         pixel_format=rig.camera.pixel_format,

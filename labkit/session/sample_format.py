@@ -103,6 +103,22 @@ def sample_facts(image: np.ndarray, *, name: str) -> SampleFacts:
     name : str
         The file, for error messages.
     """
+    return stored_samples(image, name=name)[1]
+
+
+def stored_samples(image: np.ndarray, *, name: str) -> tuple[np.ndarray, SampleFacts]:
+    """The samples as the session stores them, and their encoding facts.
+
+    uint8/uint16 samples are kept as they are, floats become uint16 (see the module
+    docstring); raises DataError for what cannot be a raw frame.
+
+    Parameters
+    ----------
+    image : ndarray (rows, cols)
+        The file's samples as read.
+    name : str
+        The file, for error messages.
+    """
     if image.ndim != 2:
         raise DataError(
             f"{name}: expected a 2-D raw mosaic, got shape {image.shape}"
@@ -121,17 +137,10 @@ def sample_facts(image: np.ndarray, *, name: str) -> SampleFacts:
     maximum = int(values.max(initial=0))
     combined = int(np.bitwise_or.reduce(values.ravel().astype(np.uint16)))
     step_bits = 16 if combined == 0 else (combined & -combined).bit_length() - 1
-    return SampleFacts(
+    facts = SampleFacts(
         str(image.dtype), kind, maximum, int(np.count_nonzero(values == maximum)), step_bits
     )
-
-
-def stored_samples(image: np.ndarray) -> np.ndarray:
-    """The samples as the session stores them: uint8/uint16 unchanged, floats as uint16."""
-    if image.dtype in (np.uint8, np.uint16):
-        return image
-    values, _ = _float_counts(image, "image")
-    return values
+    return values, facts
 
 
 def _float_counts(image: np.ndarray, name: str) -> tuple[np.ndarray, str]:
@@ -140,9 +149,10 @@ def _float_counts(image: np.ndarray, name: str) -> tuple[np.ndarray, str]:
     low, high = float(image.min(initial=0.0)), float(image.max(initial=0.0))
     if low < 0:
         raise DataError(f"{name}: the float mosaic holds negative values (down to {low:g})")
-    if high <= 1.0 and not np.array_equal(image, np.round(image)):
+    whole = np.array_equal(image, np.round(image))
+    if high <= 1.0 and not whole:
         return np.round(image.astype(np.float64) * 65535).astype(np.uint16), "normalised"
-    if high <= 65535 and np.array_equal(image, np.round(image)):
+    if high <= 65535 and whole:
         return image.astype(np.uint16), "uint16"
     raise DataError(
         f"{name}: float values up to {high:g} are neither counts (whole numbers up to 65535) "

@@ -89,12 +89,12 @@ def test_overrides_are_checked_against_every_file() -> None:
 def test_float_files_hold_counts_or_normalised_values() -> None:
     counts = _ramp(4095).astype(np.float32)
     facts = sample_facts(counts, name="c.tif")
-    assert facts.kind == "uint16" and stored_samples(counts).dtype == np.uint16
+    assert facts.kind == "uint16" and stored_samples(counts, name="c.tif")[0].dtype == np.uint16
     assert _decide({"c.tif": counts})["c.tif"].saturation_dn == 4095.0
     normalised = (_ramp(1000).astype(np.float32) / 1000.0) * np.float32(0.7)
     chosen = _decide({"n.tif": normalised})["n.tif"]
     assert (chosen.justification, chosen.saturation_dn) == ("normalised", 65535.0)
-    stored = stored_samples(normalised)
+    stored, _ = stored_samples(normalised, name="n.tif")
     np.testing.assert_allclose(stored / 65535.0, normalised, atol=0.5 / 65535)
     for bad, match in [
         (normalised * 3, "neither counts"),

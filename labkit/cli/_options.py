@@ -1,0 +1,23 @@
+"""Options that several commands share, defined once."""
+
+from __future__ import annotations
+
+import argparse
+
+from labkit.cfa import CFA_LAYOUTS
+
+
+def add_cfa_option(parser: argparse.ArgumentParser, *, default: str = "") -> None:
+    """``--cfa``: the Bayer layout of a raw mosaic that does not record its own.
+
+    `default` says, in parentheses after the help's first clause, where the layout comes
+    from when the option is left out (e.g. ``"the rig's with --rig"``).
+    """
+    note = f" (default: {default})" if default else ""
+    parser.add_argument(
+        "--cfa",
+        choices=CFA_LAYOUTS,
+        default=None,
+        help=f"Bayer layout (top-left 2×2 block, row by row) of a raw mosaic that does not "
+        f"record it{note}; an error if it contradicts the file's own",
+    )
