@@ -94,15 +94,7 @@ class SampleFormat:
 
 
 def sample_facts(image: np.ndarray, *, name: str) -> SampleFacts:
-    """The encoding facts of a 2-D mosaic; raises DataError for what cannot be a raw frame.
-
-    Parameters
-    ----------
-    image : ndarray (rows, cols)
-        The file's samples as read.
-    name : str
-        The file, for error messages.
-    """
+    """The encoding facts of a 2-D mosaic (the second half of :func:`stored_samples`)."""
     return stored_samples(image, name=name)[1]
 
 
