@@ -174,7 +174,6 @@ def _calibrate(rig: Rig, out: Path) -> dict[str, Any]:
     from calibration._hdr_inputs import load_scene_hdr
     from calibration.bands import filter_bands
     from calibration.dispersion_calibration import calibrate_dispersion
-    from calibration.plots import plot_model
     from labkit.sim import SimulatedRig
     from labkit.sim.truth import model_error
 
@@ -184,24 +183,36 @@ def _calibrate(rig: Rig, out: Path) -> dict[str, Any]:
         images, reference="600", bands=bands, direction="to_reference", workers=2
     )
     colour = calibrate_dispersion(images, reference="G", bands=bands, workers=2)
-    folder = out / "calibration"
+    summary = save_models(spectral, colour, out / "calibration")
+    lens = SimulatedRig(rig).lens
+    used = summary["spectral"]["bands_used_nm"]
+    grid = sorted({*used, *np.arange(np.ceil(used[0] / 5) * 5, used[-1], 5.0).tolist()})
+    error = model_error(spectral.model, lens, float(spectral.model.reference), grid)
+    summary["spectral"]["error_vs_lens_px"] = error
+    return {"spectral": spectral.model, "colour": colour.model, "summary": summary}
+
+
+def save_models(spectral: Any, colour: Any, folder: Path) -> dict[str, Any]:
+    """Save a spectral and a colour-channel dispersion calibration with their plots.
+
+    Writes ``spectral_to_reference.yaml``, ``colour_from_reference.yaml`` and a PNG of
+    each into `folder`; returns their summary for the report.
+    """
+    from calibration.plots import plot_model
+
     spectral.model.save(folder / "spectral_to_reference.yaml")
     colour.model.save(folder / "colour_from_reference.yaml")
     plot_model(spectral.model, folder / "spectral_model.png")
     plot_model(colour.model, folder / "colour_model.png")
-    lens = SimulatedRig(rig).lens
-    used = sorted(b.wavelength_nm for b in spectral.bands if b.used)
-    grid = sorted({*used, *np.arange(np.ceil(used[0] / 5) * 5, used[-1], 5.0).tolist()})
-    error = model_error(spectral.model, lens, float(spectral.model.reference), grid)
     selection = spectral.model.selection
-    summary = {
+    return {
         "spectral": {
-            "bands_used_nm": used,
+            "bands_used_nm": sorted(b.wavelength_nm for b in spectral.bands if b.used),
+            "reference_nm": float(spectral.model.reference),
             "keypoints": len(spectral.keypoints),
             "degree_xy": selection.get("degree_xy"),
             "degree_lambda": selection.get("degree_lambda"),
             "condition_number": selection.get("condition_number"),
-            "error_vs_lens_px": error,
             "warnings": list(spectral.warnings),
         },
         "colour": {
@@ -210,13 +221,11 @@ def _calibrate(rig: Rig, out: Path) -> dict[str, Any]:
             "warnings": list(colour.warnings),
         },
     }
-    return {"spectral": spectral.model, "colour": colour.model, "summary": summary}
 
 
 def _reconstruct(rig: Rig, out: Path, models: dict[str, Any]) -> dict[str, Any]:
-    from labkit.io import SpectralImage, read_raw_exr, write_spectral_exr
+    from labkit.io import read_raw_exr
     from labkit.sim import SimulatedRig
-    from reconstruction import reconstruct
 
     response = SimulatedRig(rig).response
     jobs = [(scene, scene, scene, {}) for scene in RECONSTRUCTED] + [
@@ -231,49 +240,71 @@ def _reconstruct(rig: Rig, out: Path, models: dict[str, Any]) -> dict[str, Any]:
     results = {}
     for scene, name, slug, variant in jobs:
         image = read_raw_exr(out / "hdr" / scene / "unfiltered.exr")
-        bar = tqdm(desc=f"reconstruct {name}", unit="patch", leave=False)
-
-        def progress(done: int, total: int, bar=bar) -> None:
-            bar.total = total
-            bar.n = done
-            bar.refresh()
-
-        start = time.perf_counter()
-        result = reconstruct(
+        result, summary = reconstruct_and_save(
             image.raw,
+            out / "reconstruction" / slug,
+            name=name,
             cfa=image.cfa,
             response=response,
             dispersion=models["spectral"],
-            progress=progress,
             **variant,
         )
-        seconds = time.perf_counter() - start
-        bar.close()
-        folder = out / "reconstruction" / slug
-        write_spectral_exr(
-            folder / "spectral.exr",
-            SpectralImage(result.spectral, result.wavelengths_nm, {"command": "labkit demo"}),
-        )
-        write_png(folder / "preview.png", spectral_preview(result.spectral, result.wavelengths_nm))
-        patches = result.log["patches"]
         results[name] = {
             "scene": scene,
             "slug": slug,
             "result": result,
             "raw": image.raw,
             "cfa": image.cfa,
-            "seconds": seconds,
-            "summary": {
-                "seconds": seconds,
-                "bands_nm": [float(b) for b in result.wavelengths_nm],
-                "weights": result.log["weights"]["values"],
-                "patches": patches["count"],
-                "phi_used": patches["phi_used"],
-                "flat": patches["flat"],
-                "median_iterations": patches["iterations_median"],
-            },
+            "seconds": summary["seconds"],
+            "summary": summary,
         }
     return results
+
+
+def reconstruct_and_save(
+    raw: np.ndarray,
+    folder: Path,
+    *,
+    name: str,
+    command: str = "labkit demo",
+    disable_progress: bool | None = False,
+    **options: Any,
+) -> tuple[Any, dict[str, Any]]:
+    """Reconstruct `raw` with a progress bar; write ``spectral.exr`` and ``preview.png``.
+
+    Returns the :class:`reconstruction.Reconstruction` and a summary for the report
+    (seconds, bands, weight, patch counts, median ADMM iterations).
+    """
+    from labkit.io import SpectralImage, write_spectral_exr
+    from reconstruction import reconstruct
+
+    bar = tqdm(desc=f"reconstruct {name}", unit="patch", leave=False, disable=disable_progress)
+
+    def progress(done: int, total: int) -> None:
+        bar.total = total
+        bar.n = done
+        bar.refresh()
+
+    start = time.perf_counter()
+    result = reconstruct(raw, progress=progress, **options)
+    seconds = time.perf_counter() - start
+    bar.close()
+    write_spectral_exr(
+        folder / "spectral.exr",
+        SpectralImage(result.spectral, result.wavelengths_nm, {"command": command}),
+    )
+    write_png(folder / "preview.png", spectral_preview(result.spectral, result.wavelengths_nm))
+    patches = result.log["patches"]
+    summary = {
+        "seconds": seconds,
+        "bands_nm": [float(b) for b in result.wavelengths_nm],
+        "weights": result.log["weights"]["values"],
+        "patches": patches["count"],
+        "phi_used": patches["phi_used"],
+        "flat": patches["flat"],
+        "median_iterations": patches["iterations_median"],
+    }
+    return result, summary
 
 
 def _evaluate(
@@ -323,21 +354,55 @@ def _evaluate(
 
 def _scene_figures(out, scene, raw, images, evaluation, boxes) -> dict[str, Any]:
     """Display images on one common scale, zoomed crops, and the edge-error chart."""
-    folder = out / "evaluation" / scene
-    display = display_on_one_scale(images, reference="bilinear")
-    previews = []
-    for name, image in display.items():
-        path = folder / f"{file_stem(name)}.png"
-        write_png(path, image)
-        previews.append((str(path.relative_to(out)), name))
     rows, cols = raw.shape
-    side = max(32, min(rows, cols) // 8)
     if boxes is not None:  # patch corners far from the centre fringe the most
         x0, y0 = boxes[0][:2]
         x1, y1 = boxes[-1][2:]
         centres = [(y0, x0), (y0, x1), (y1, x1)]
     else:
         centres = [(rows // 8, cols // 8), (rows // 2, cols // 2), (rows - rows // 8, cols // 8)]
+    side = max(32, min(rows, cols) // 8)
+    return method_figures(
+        out, out / "evaluation" / scene, images, evaluation, centres, side, edge=boxes is not None
+    )
+
+
+def method_figures(
+    out: Path,
+    folder: Path,
+    images: dict[str, np.ndarray],
+    evaluation: Any,
+    centres: list[tuple[int, int]],
+    side: int,
+    *,
+    edge: bool,
+) -> dict[str, Any]:
+    """Every method's image on one display scale, zoomed crops and the edge-error chart.
+
+    Parameters
+    ----------
+    out : Path
+        The report's folder (figure paths are returned relative to it).
+    folder : Path
+        Where the PNGs go.
+    images : dict of str to ndarray (rows, cols, 3)
+        Colour images by method (``"bilinear"`` among them: the display scale's reference).
+    evaluation : reconstruction.Evaluation
+        Their scores (the edge chart needs residual aberration).
+    centres : list of (row, col)
+        Centres of the zoomed crops, px.
+    side : int
+        Crop side, px.
+    edge : bool
+        Draw the edge-strip RMSE chart.
+    """
+    display = display_on_one_scale(images, reference="bilinear")
+    previews = []
+    for name, image in display.items():
+        path = folder / f"{file_stem(name)}.png"
+        write_png(path, image)
+        previews.append((str(path.relative_to(out)), name))
+    rows, cols = next(iter(images.values())).shape[:2]
     windows = [
         (int(np.clip(r - side // 2, 0, rows - side)), int(np.clip(c - side // 2, 0, cols - side)),
          side)
@@ -347,10 +412,10 @@ def _scene_figures(out, scene, raw, images, evaluation, boxes) -> dict[str, Any]
     chosen += [n for n in display if n.startswith("spectral")]
     plot_crops({n: display[n] for n in chosen if n in display}, windows, folder / "crops.png")
     figures = {"previews": previews, "crops": str((folder / "crops.png").relative_to(out))}
-    if boxes is not None:
-        edge = {n: s.residual.edge.rmse for n, s in evaluation.scores.items() if s.residual}
+    if edge:
+        rmse = {n: s.residual.edge.rmse for n, s in evaluation.scores.items() if s.residual}
         plot_channel_errors(
-            edge, folder / "edge_rmse.png", ylabel="edge-strip RMSE (fraction of raw mean)"
+            rmse, folder / "edge_rmse.png", ylabel="edge-strip RMSE (fraction of raw mean)"
         )
         figures["edge"] = str((folder / "edge_rmse.png").relative_to(out))
     return figures

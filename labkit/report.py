@@ -127,8 +127,8 @@ class Report:
 
 
 def file_stem(name: str) -> str:
-    """A file-name-safe stem of a method or figure name (letters, digits, ``_``)."""
-    stem = "".join(c if c.isalnum() else "_" for c in name).strip("_")
+    """A file-name-safe stem of a method or figure name (ASCII letters, digits, ``_``)."""
+    stem = "".join(c if c.isascii() and c.isalnum() else "_" for c in name).strip("_")
     while "__" in stem:
         stem = stem.replace("__", "_")
     return stem

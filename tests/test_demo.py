@@ -4,25 +4,12 @@ from __future__ import annotations
 
 import json
 import re
-import shutil
-import subprocess
 from pathlib import Path
 
 import pytest
+from _report_check import images_in_chromium
 
 from labkit.cli import main
-
-CHECK_SCRIPT = """<script>
-window.addEventListener("load", () => {
-  const images = [...document.images];
-  const broken = images.filter(i => !(i.complete && i.naturalWidth > 0))
-                       .map(i => i.getAttribute("src"));
-  const out = document.createElement("pre");
-  out.id = "image-check";
-  out.textContent = JSON.stringify({total: images.length, broken: broken});
-  document.body.appendChild(out);
-});
-</script>"""
 
 
 @pytest.fixture(scope="module")
@@ -30,24 +17,6 @@ def demo_out(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("demo")
     assert main(["demo", "--quick", "--out", str(out)]) == 0
     return out
-
-
-def images_in_chromium(page: Path) -> dict:
-    """Load `page` (a copy with a checking script) in headless Chromium: images loaded."""
-    browser = shutil.which("chromium") or shutil.which("chromium-browser")
-    if browser is None:
-        pytest.skip("Debian's chromium is not installed (make test installs it)")
-    probe = page.with_name("_image_check.html")
-    probe.write_text(page.read_text().replace("</body>", CHECK_SCRIPT + "</body>"))
-    result = subprocess.run(
-        [browser, "--headless", "--no-sandbox", "--disable-gpu", "--virtual-time-budget=10000",
-         "--dump-dom", probe.as_uri()],
-        capture_output=True, text=True, timeout=120, check=False,
-    )  # fmt: skip
-    probe.unlink()
-    found = re.search(r'<pre id="image-check">(.*?)</pre>', result.stdout)
-    assert found, f"chromium gave no result (status {result.returncode}): {result.stderr[-500:]}"
-    return json.loads(found.group(1).replace("&quot;", '"'))
 
 
 def test_demo_runs_the_whole_job_with_known_answers(demo_out: Path) -> None:

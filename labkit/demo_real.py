@@ -1,0 +1,626 @@
+"""`labkit demo --real`: the main job on real frames from the thesis' lab, end to end.
+
+The input is a folder of real captures laid out like :func:`labkit.data.real_colorchecker`
+(``frames/`` of one chart under bandpass filters at several exposures, ``darks/``, and
+``labels.png`` naming the 24 ColorChecker patches); by default the vendored one.
+
+1. **Import** the frames and darks into a session under the Flea3 example rig: bit depth,
+   saturation and black level are read from the files (8-bit here).
+2. **HDR**: merge each filter's bracket (thesis Algorithm 11); Table 4.1 per filter.
+3. **Sensor map**: the R/G and B/G ratios of every band measured from the filtered
+   images (Algorithm 12), compared with the rig's stand-in response.
+4. **Multispectral and synthetic raw images** from the filtered images (Algorithm 13),
+   as in thesis §4.2.4: the lab has no raw image of this chart whose truth is known, so
+   the reconstruction input is synthesised from the filtered frames.
+5. **Dispersion calibration** from the filtered images themselves (registration
+   keypoints; bands kept or dropped from the evidence in the images): a spectral
+   ``to_reference`` model for the reconstruction and a colour-channel model of the
+   synthetic raw image for the warping baselines.
+6. **Reconstruct** the synthetic raw image with the sensor map as the camera response:
+   default options and the §6.3 variant (mean-colour reference, no spectral smoothness).
+7. **Evaluate**: patch-centre spectra against the ASD spectrometer's reflectances of the
+   same chart (thesis Table 5.7) for the multispectral image and each reconstruction;
+   residual chromatic aberration on the chart (§4.4.3) against bilinear, Malvar and Menon
+   demosaicing, with and without channel warping.
+8. **Report**: ``report.html``, ``report.md`` and ``results.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from labkit.errors import DataError
+from labkit.io import spectral_preview, write_png, write_text_atomic
+from labkit.io.tiff import json_default
+from labkit.plots import plot_patch_spectra
+from labkit.report import Report
+
+REFERENCE_BAND = "600"
+"""Filter whose geometry the spectral dispersion model maps every band onto."""
+VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
+    "defaults": ("defaults", {}),
+    "§6.3 mean-colour, σ = 0": (
+        "mean_colour_sigma0",
+        {"reference": "mean-colour", "spectral_smoothness": 0.0},
+    ),
+}
+"""Reconstructions of the synthetic raw image: name → (folder, options of
+:func:`reconstruction.reconstruct`)."""
+CENTRE_FRACTION = 0.5
+"""Patch centre: the pixels at least this fraction of the patch's largest distance to its
+edge away from the edge (the inner half, by the distance transform of each label)."""
+SPECTRA_PATCHES = (0, 2, 6, 11, 14, 18)
+"""ColorChecker patches whose spectra are plotted (chart order)."""
+
+
+def real_rig_path() -> Path:
+    """The packaged rig of the thesis' lab (``rigs/example-flea3.yaml``)."""
+    from importlib import resources
+
+    return Path(str(resources.files("labkit") / "rigs" / "example-flea3.yaml"))
+
+
+def run_real_demo(
+    out: str | Path,
+    *,
+    data: str | Path | None = None,
+    rig_path: str | Path | None = None,
+    progress: bool | None = None,
+) -> Path:
+    """Run the whole job on real captures into `out`; return the path of ``report.html``.
+
+    Parameters
+    ----------
+    out : str or Path
+        Output folder (created; existing demo outputs in it are replaced).
+    data : str or Path, optional
+        Folder with ``frames/``, ``darks/`` and ``labels.png`` named as the vendored set
+        (:data:`labkit.data.REAL_COLORCHECKER_PATTERNS`); default
+        :func:`labkit.data.real_colorchecker`.
+    rig_path : str or Path, optional
+        Rig YAML of the lab (default: :func:`real_rig_path`).
+    progress : bool, optional
+        Progress bars; default: only on a terminal.
+
+    Raises
+    ------
+    DataError
+        A folder or file is missing, or a stage cannot trust its input.
+    """
+    from labkit.data import real_colorchecker
+    from labkit.rig import load_rig
+
+    out = Path(out)
+    data = Path(data) if data is not None else real_colorchecker()
+    inputs = _inputs(data)
+    rig_file = Path(rig_path) if rig_path else real_rig_path()
+    rig = load_rig(rig_file)
+    out.mkdir(parents=True, exist_ok=True)
+    disable = None if progress is None else not progress
+    times: dict[str, float] = {}
+    stages = tqdm(total=7, desc="demo --real", unit="stage", disable=disable)
+
+    def stage(name: str, function: Callable[[], Any]) -> Any:
+        stages.set_description(f"demo --real: {name}")
+        start = time.perf_counter()
+        value = function()
+        times[name] = time.perf_counter() - start
+        stages.update()
+        return value
+
+    session = stage("import", lambda: _import(inputs, rig, out))
+    hdr = stage("hdr", lambda: _hdr(out))
+    scene, images = _filtered(out)
+    sensor = stage("sensor map", lambda: _sensor_map(images, rig, out))
+    synthesis = stage("synthesize", lambda: _synthesize(images, sensor, scene, out))
+    models = stage("calibrate", lambda: _calibrate(images, synthesis, rig, out))
+    recons = stage("reconstruct", lambda: _reconstruct(synthesis, sensor, models, out, disable))
+    evaluation = stage("evaluate", lambda: _evaluate(inputs, synthesis, models, recons, out))
+    stages.close()
+    results = {
+        "data": str(data),
+        "rig": str(rig_file),
+        "scene": scene,
+        "seconds": times,
+        "import": session,
+        "hdr": hdr["summary"],
+        "sensor_map": sensor["summary"],
+        "calibration": models["summary"],
+        "reconstruction": {name: r["summary"] for name, r in recons.items()},
+        "evaluation": evaluation["summary"],
+    }
+    report = Report("labkit demo --real — the thesis' ColorChecker, real frames")
+    _write_report(report, results, hdr, sensor, models, recons, evaluation)
+    write_text_atomic(
+        out / "results.json", json.dumps(results, indent=1, default=json_default) + "\n"
+    )
+    _, page = report.write(out)
+    return page
+
+
+def _inputs(data: Path) -> dict[str, Path]:
+    inputs = {"frames": data / "frames", "darks": data / "darks", "labels": data / "labels.png"}
+    missing = [str(path) for path in inputs.values() if not path.exists()]
+    if missing:
+        raise DataError(
+            f"{data} is not a real-capture folder: missing {', '.join(missing)}; it needs "
+            "frames/ (filtered frames), darks/ and labels.png (patch labels 1–24) named like "
+            "the vendored set (labkit.data.real_colorchecker())"
+        )
+    return inputs
+
+
+def _import(inputs: dict[str, Path], rig, out: Path) -> dict[str, Any]:
+    import shutil
+
+    from labkit.data import REAL_COLORCHECKER_PATTERNS
+    from labkit.session.importer import import_session
+
+    folder = out / "session"
+    if folder.exists():
+        shutil.rmtree(folder)
+    session, _ = import_session(
+        folder, [inputs["frames"], inputs["darks"]], REAL_COLORCHECKER_PATTERNS, rig
+    )
+    records = list(session.records.values())
+    first = records[0]
+    return {
+        "frames": sum(not r["dark"] for r in records),
+        "dark_frames": sum(bool(r["dark"]) for r in records),
+        "source_dtype": first.get("source_dtype"),
+        "sample_bits": first.get("sample_bits"),
+        "saturation_dn": first.get("saturation_dn"),
+        "black_level": first.get("black_level"),
+        "levels_from": first.get("levels_from"),
+    }
+
+
+def _hdr(out: Path) -> dict[str, Any]:
+    from labkit.hdr import run_hdr
+
+    run = run_hdr(out / "session", out / "hdr", previews=True)
+    rows = {}
+    for output in run.outputs:
+        result = output.result
+        rows[output.job.illumination] = {
+            "exposures_s": [e.exposure_s for e in result.exposures],
+            "nominal": [e.nominal for e in result.exposures],
+            "fitted": [e.factor for e in result.exposures],
+            "largest_difference": max(
+                (e.disagreement for e in result.exposures), key=abs, default=0.0
+            ),
+            "warnings": list(result.warnings),
+            "preview": str(output.preview.relative_to(out)) if output.preview else None,
+        }
+    return {"summary": rows}
+
+
+def _filtered(out: Path) -> tuple[str, list]:
+    from calibration import load_filtered_hdr
+
+    scenes = load_filtered_hdr(out / "hdr")
+    if len(scenes) != 1:
+        raise DataError(
+            f"{out / 'hdr'}: expected the filtered images of one chart, found scenes "
+            f"{sorted(scenes)}"
+        )
+    scene, images = next(iter(scenes.items()))
+    return scene, images
+
+
+def _sensor_map(images: list, rig, out: Path) -> dict[str, Any]:
+    from calibration import channel_sensitivity, nominal_channel_sensitivity
+    from calibration.sensitivity import load_response, plot_channel_sensitivity
+
+    measured = channel_sensitivity(images)
+    nominal = nominal_channel_sensitivity(rig)
+    folder = out / "sensor_map"
+    folder.mkdir(parents=True, exist_ok=True)
+    measured.to_yaml(folder / "sensitivity.yaml")
+    measured.to_csv(folder / "sensitivity.csv")
+    plot_channel_sensitivity(measured, nominal, folder / "sensitivity.png")
+    rows = []
+    for i, wavelength in enumerate(measured.wavelengths_nm):
+        entry = nominal.index_of(wavelength) if nominal is not None else None
+        rows.append(
+            {
+                "wavelength_nm": float(wavelength),
+                "r_over_g": float(measured.r_over_g[i]),
+                "b_over_g": float(measured.b_over_g[i]),
+                "nominal_r_over_g": None if entry is None else float(nominal.r_over_g[entry]),
+                "nominal_b_over_g": None if entry is None else float(nominal.b_over_g[entry]),
+                "reliable": bool(measured.reliable[i]),
+            }
+        )
+    return {
+        "sensitivity": measured,
+        "response": load_response(folder / "sensitivity.yaml"),
+        "path": folder / "sensitivity.yaml",
+        "summary": {"bands": rows, "stand_in": rig.camera.response},
+    }
+
+
+def _synthesize(images: list, sensor: dict[str, Any], scene: str, out: Path) -> dict[str, Any]:
+    from calibration import synthesize_multispectral, write_synthesis
+
+    synthesis = synthesize_multispectral(images, sensor["sensitivity"])
+    paths = write_synthesis(synthesis, out / "synthesis", scene)
+    cube = synthesis.multispectral
+    write_png(
+        out / "synthesis" / f"{scene}-multispectral.png",
+        spectral_preview(cube.cube, cube.wavelengths_nm),
+    )
+    return {"synthesis": synthesis, "paths": paths, "scene": scene}
+
+
+def _calibrate(images: list, synthesis: dict[str, Any], rig, out: Path) -> dict[str, Any]:
+    from calibration.bands import filter_bands
+    from calibration.dispersion_calibration import calibrate_dispersion
+    from labkit.demo import save_models
+
+    bands = filter_bands(rig, images=images)
+    rng = np.random.default_rng(2019)
+    spectral = calibrate_dispersion(
+        images,
+        reference=REFERENCE_BAND,
+        keypoints="registration",
+        direction="to_reference",
+        bands=bands,
+        rng=rng,
+        workers=2,
+    )
+    colour = calibrate_dispersion(
+        [synthesis["synthesis"].raw], reference="G", keypoints="registration", rng=rng
+    )
+    summary = save_models(spectral, colour, out / "calibration")
+    summary["bands"] = [
+        {
+            "filter": band.illumination,
+            "wavelength_nm": band.wavelength_nm,
+            "purity": band.purity,
+            "used": band.used,
+            "why": band.reason or _explain(bands, band.illumination),
+        }
+        for band in spectral.bands
+    ]
+    return {"spectral": spectral.model, "colour": colour.model, "summary": summary}
+
+
+def _reconstruct(
+    synthesis: dict[str, Any],
+    sensor: dict[str, Any],
+    models: dict[str, Any],
+    out: Path,
+    disable: bool | None,
+) -> dict[str, Any]:
+    from labkit.demo import reconstruct_and_save
+
+    raw = synthesis["synthesis"].raw
+    response = sensor["response"]
+    results = {}
+    for name, (slug, options) in VARIANTS.items():
+        folder = out / "reconstruction" / slug
+        result, summary = reconstruct_and_save(
+            raw.raw,
+            folder,
+            name=f"({name})",
+            command="labkit demo --real",
+            disable_progress=disable,
+            cfa=raw.cfa,
+            response=response,
+            bands=[float(w) for w in response.wavelengths],
+            dispersion=models["spectral"],
+            **options,
+        )
+        summary["options"] = options
+        summary["warnings"] = list(result.log.get("warnings", []))
+        results[name] = {"result": result, "folder": folder, "summary": summary}
+    return results
+
+
+def patch_centres(labels: np.ndarray, *, fraction: float = CENTRE_FRACTION) -> list[np.ndarray]:
+    """Boolean masks of the centres of patches 1…24 of a label image.
+
+    A patch's centre is the set of its pixels whose distance to the patch's edge is at
+    least ``1 − fraction`` of the largest such distance (``fraction = 0.5``: the inner half).
+
+    Raises
+    ------
+    DataError
+        A patch label 1…24 is missing.
+    """
+    from scipy import ndimage
+
+    masks = []
+    missing = []
+    for label in range(1, 25):
+        patch = labels == label
+        if not patch.any():
+            missing.append(label)
+            continue
+        distance = ndimage.distance_transform_edt(patch)
+        masks.append(distance >= (1.0 - fraction) * distance.max())
+    if missing:
+        raise DataError(
+            f"the label image has no pixels for patch(es) {missing}; it needs labels 1–24 "
+            "(ColorChecker order, row by row from the top left) and 0 for the background"
+        )
+    return masks
+
+
+def patch_spectral_errors(
+    cube: np.ndarray,
+    wavelengths_nm: Sequence[float],
+    centres: list[np.ndarray],
+    reflectances,
+) -> dict[str, Any]:
+    """Patch-centre spectra of `cube` against measured reflectances (thesis Table 5.7).
+
+    Each patch's mean spectrum over its centre is compared with its reflectance sampled at
+    the cube's band wavelengths, after scaling each band by least squares over the 24
+    patches (eq. 4.9: the cube's units are not reflectance).
+
+    Returns
+    -------
+    dict
+        ``"mrae"``, ``"rmse"`` (means over the patches), ``"estimate"`` (24, bands) in
+        reflectance units after the registration, and ``"truth"`` (24, bands).
+    """
+    from reconstruction.metrics import spectral_errors
+
+    wavelengths = np.asarray(wavelengths_nm, dtype=float)
+    estimate = np.stack([cube[mask].mean(axis=0) for mask in centres]).astype(float)
+    truth = reflectances.resample(wavelengths).values.T.astype(float)
+    errors = spectral_errors(
+        truth[:, None, :], estimate[:, None, :], ssim=False, register=True, floor=0.0
+    )
+    scale = (truth * estimate).sum(axis=0) / np.maximum((estimate * estimate).sum(axis=0), 1e-300)
+    return {
+        "mrae": float(errors.mrae),
+        "rmse": float(errors.rmse_pixel),
+        "estimate": estimate * scale,
+        "truth": truth,
+    }
+
+
+def _evaluate(
+    inputs: dict[str, Path],
+    synthesis: dict[str, Any],
+    models: dict[str, Any],
+    recons: dict[str, Any],
+    out: Path,
+) -> dict[str, Any]:
+    from labkit.io.plane import read_plane
+    from labkit.spectra import colorchecker_reflectances
+    from labkit.spectra.datasets import COLORCHECKER_PATCHES
+    from reconstruction import baseline_images, evaluate
+
+    raw = synthesis["synthesis"].raw
+    labels = read_plane(inputs["labels"], what="label image")
+    if labels.ndim == 3:
+        labels = labels[..., 0]
+    if labels.shape != raw.raw.shape:
+        raise DataError(
+            f"{inputs['labels']}: label image is {labels.shape[1]}×{labels.shape[0]} px but "
+            f"the frames are {raw.raw.shape[1]}×{raw.raw.shape[0]}; it must share their grid"
+        )
+    labels = np.asarray(labels).astype(np.int32)
+    centres = patch_centres(labels)
+    reflectances = colorchecker_reflectances("measured")
+    multispectral = synthesis["synthesis"].multispectral
+    patch = {
+        "multispectral": patch_spectral_errors(
+            multispectral.cube, multispectral.wavelengths_nm, centres, reflectances
+        )
+    }
+    for name, r in recons.items():
+        result = r["result"]
+        patch[name] = patch_spectral_errors(
+            result.spectral, result.wavelengths_nm, centres, reflectances
+        )
+    images, seconds = baseline_images(raw.raw, cfa=raw.cfa, colour_dispersion=models["colour"])
+    for name, r in recons.items():
+        images[f"spectral: {name}"] = r["result"].raw_colour
+        seconds[f"spectral: {name}"] = r["summary"]["seconds"]
+    evaluation = evaluate(raw.raw, images, cfa=raw.cfa, labels=labels, seconds=seconds)
+    folder = out / "evaluation"
+    figures = _figures(out, folder, labels, images, evaluation)
+    figures["spectra"] = _spectra_figure(folder, out, patch, recons, multispectral, reflectances)
+    names = [COLORCHECKER_PATCHES[i] for i in range(24)]
+    summary = {
+        "patch_centres": {
+            name: {
+                "mrae": e["mrae"],
+                "rmse": e["rmse"],
+                "per_patch_mrae": dict(
+                    zip(
+                        names,
+                        (np.abs(e["estimate"] - e["truth"]) / e["truth"]).mean(axis=1).tolist(),
+                        strict=True,
+                    )
+                ),
+            }
+            for name, e in patch.items()
+        },
+        "residual_aberration": evaluation.as_dict(),
+    }
+    return {"summary": summary, "evaluation": evaluation, "figures": figures, "patch": patch}
+
+
+def _figures(out, folder, labels, images, evaluation) -> dict[str, Any]:
+    """Display images on one scale, crops at the chart's corners, the edge-error chart."""
+    from labkit.demo import method_figures
+
+    ys, xs = np.nonzero(labels)
+    corners = [(ys.min(), xs.min()), (ys.min(), xs.max()), (ys.max(), xs.max())]
+    side = max(32, min(labels.shape) // 6)
+    return method_figures(out, folder, images, evaluation, corners, side, edge=True)
+
+
+def _spectra_figure(folder, out, patch, recons, multispectral, reflectances) -> str:
+    from labkit.demo import PATCH_NAMES
+
+    fine = np.arange(400.0, 701.0, 2.0)
+    truth = reflectances.resample(fine).values.T[list(SPECTRA_PATCHES)]
+    wavelengths = {"multispectral": multispectral.wavelengths_nm}
+    wavelengths.update({name: r["result"].wavelengths_nm for name, r in recons.items()})
+    estimates = {
+        name: (np.asarray(w), patch[name]["estimate"][list(SPECTRA_PATCHES)])
+        for name, w in wavelengths.items()
+    }
+    path = folder / "patch_spectra.png"
+    plot_patch_spectra((fine, truth), estimates, [PATCH_NAMES[i] for i in SPECTRA_PATCHES], path)
+    return str(path.relative_to(out))
+
+
+def _write_report(report, results, hdr, sensor, models, recons, evaluation) -> None:
+    times = results["seconds"]
+    imported = results["import"]
+    report.paragraph(
+        f"Real frames of a ColorChecker from the thesis' lab (`{results['data']}`), under the "
+        f"rig `{results['rig']}`: import → HDR → sensor map → multispectral and synthetic "
+        "raw images (thesis §4.2.4) → dispersion calibration → reconstruction → evaluation "
+        f"against the chart's ASD spectrometer reflectances. Total {sum(times.values()):.0f} s."
+    )
+    report.table(
+        ["stage", "time (s)"],
+        [[name, f"{seconds:.1f}"] for name, seconds in times.items()]
+        + [["total", f"{sum(times.values()):.1f}"]],
+    )
+    report.heading("Import and HDR")
+    report.paragraph(
+        f"{imported['frames']} frames and {imported['dark_frames']} dark frames; levels "
+        f"from {imported['levels_from']}: {imported['source_dtype']} files, "
+        f"{imported['sample_bits']}-bit samples, saturation {imported['saturation_dn']:g} DN, "
+        f"black level {imported['black_level']:g} DN. Table 4.1: the exposure factors fitted "
+        "from the data (t_ref/t; a factor the data cannot fit keeps the exposure-time ratio, "
+        "with a warning below)."
+    )
+    rows_hdr = hdr["summary"]
+    exposures = sorted({t for row in rows_hdr.values() for t in row["exposures_s"]})
+    header = ["filter"] + [f"{t * 1e3:g} ms" for t in exposures] + ["largest difference"]
+    rows = []
+    for name, row in sorted(rows_hdr.items(), key=lambda item: float(item[0])):
+        fitted = dict(zip(row["exposures_s"], row["fitted"], strict=True))
+        rows.append(
+            [name]
+            + [f"{fitted[t]:.4f}" if t in fitted else "–" for t in exposures]
+            + [f"{row['largest_difference']:+.1%}"]
+        )
+    report.table(header, rows)
+    warnings = [f"{n}: {w}" for n, row in rows_hdr.items() for w in row["warnings"]]
+    if warnings:
+        report.bullets(warnings)
+    report.figures(
+        [(row["preview"], f"{n} nm (HDR)") for n, row in rows_hdr.items() if row["preview"]],
+        width_px=220,
+    )
+    report.heading("Sensor map")
+    report.paragraph(
+        "R/G and B/G of every band measured from the filtered images (thesis Algorithm 12), "
+        f"against the rig's stand-in response ({sensor['summary']['stand_in']}). The map is "
+        "the camera response of the synthesis and of the reconstruction."
+    )
+    report.table(
+        ["band (nm)", "R/G", "stand-in", "B/G", "stand-in", "reliable"],
+        [
+            [f"{b['wavelength_nm']:.0f}", f"{b['r_over_g']:.4g}", _cell(b["nominal_r_over_g"]),
+             f"{b['b_over_g']:.4g}", _cell(b["nominal_b_over_g"]), "yes" if b["reliable"] else "no"]
+            for b in sensor["summary"]["bands"]
+        ],
+    )  # fmt: skip
+    report.figures([("sensor_map/sensitivity.png", "measured (solid) and stand-in (dotted)")])
+    scene = results["scene"]
+    report.figures(
+        [
+            (f"synthesis/{scene}-multispectral.png", "multispectral image (sRGB)"),
+            (f"synthesis/{scene}-synthetic-rgb.png", "synthetic colour image"),
+        ],
+        width_px=340,
+    )
+    calibration = results["calibration"]
+    spectral = calibration["spectral"]
+    report.heading("Dispersion calibration")
+    report.paragraph(
+        "Bands are kept or dropped from the evidence in the images (their brightness against "
+        "the leakage the rig predicts); keypoints by registering each band's image onto the "
+        f"{REFERENCE_BAND} nm one. Spectral model: {spectral['keypoints']} keypoints, degree "
+        f"{spectral['degree_xy']} in x, y and {spectral['degree_lambda']} in λ by "
+        f"cross-validation (condition number {spectral['condition_number']:.3g}). Colour "
+        f"model of the synthetic raw image (R and B onto G): {calibration['colour']['keypoints']}"
+        f" keypoints, degree {calibration['colour']['degree_xy']}."
+    )
+    report.table(
+        ["filter", "wavelength (nm)", "purity", "used", "why"],
+        [
+            [b["filter"], _cell(b["wavelength_nm"], ".1f"), _cell(b["purity"], ".0%"),
+             "yes" if b["used"] else "no", b["why"]]
+            for b in calibration["bands"]
+        ],
+    )  # fmt: skip
+    report.figures(
+        [
+            ("calibration/spectral_model.png", "spectral model (to the reference), per band"),
+            ("calibration/colour_model.png", "colour-channel model (from G)"),
+        ]
+    )
+    report.heading("Reconstruction")
+    report.paragraph(
+        "The synthetic raw image, reconstructed with the sensor map as the camera response, "
+        "its bands, and the spectral dispersion model."
+    )
+    report.table(
+        ["variant", "time (s)", "weight", "patches", "Φ used", "flat", "median iterations"],
+        [
+            [name, f"{s['seconds']:.1f}", f"{s['weights'][0]:.2g}", str(s["patches"]),
+             str(s["phi_used"]), str(s["flat"]), f"{s['median_iterations']:.0f}"]
+            for name, s in results["reconstruction"].items()
+        ],
+    )  # fmt: skip
+    report.figures(
+        [(f"reconstruction/{r['folder'].name}/preview.png", f"{n}: sRGB")
+         for n, r in recons.items()],
+        width_px=340,
+    )  # fmt: skip
+    report.heading("Evaluation")
+    report.heading("Patch-centre spectra against the ASD reflectances", 3)
+    report.paragraph(
+        "Mean spectrum of the inner half of each patch against the spectrometer's reflectance, "
+        "each band scaled by least squares over the 24 patches (eq. 4.9). The thesis (full "
+        "resolution): multispectral image MRAE 0.194, its best reconstruction 0.258 (Table 5.7)."
+    )
+    report.table(
+        ["image", "MRAE", "RMSE"],
+        [
+            [name, f"{e['mrae']:.3f}", f"{e['rmse']:.4f}"]
+            for name, e in results["evaluation"]["patch_centres"].items()
+        ],
+    )
+    report.figures([(evaluation["figures"]["spectra"], "patch-centre spectra (registered)")])
+    report.heading("Residual chromatic aberration", 3)
+    report.paragraph(
+        "Edge/centre RMSE: residual chromatic aberration in strips inside the patch edges and "
+        "in the patch centres, against an ideal image synthesised from the raw patch centres "
+        "(§4.4.3); fractions of the raw image's mean."
+    )
+    header, rows = evaluation["evaluation"].table()
+    report.table(header, rows)
+    report.figures([(evaluation["figures"]["edge"], "edge-strip RMSE per channel")])
+    report.heading("Images (one display scale for all)", 4)
+    report.figures(evaluation["figures"]["previews"], width_px=300)
+    report.figures([(evaluation["figures"]["crops"], "crops at the chart's corners")])
+
+
+def _explain(bands: dict, illumination: str) -> str:
+    return bands[illumination].explain() if illumination in bands else ""
+
+
+def _cell(value: float | None, spec: str = ".4g") -> str:
+    return "–" if value is None or not np.isfinite(value) else format(value, spec)
