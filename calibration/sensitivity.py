@@ -58,6 +58,7 @@ COLUMNS = (
     "illumination",
     "r_over_g",
     "b_over_g",
+    "green_level",
     "pairs_r",
     "pairs_b",
     "residual_r",
@@ -98,6 +99,12 @@ class ChannelSensitivity:
         Whether each ratio passed the pair-count and signal tests.
     reason_r, reason_b : tuple of str
         Why a ratio is unreliable ("" when it is reliable).
+    green_level : ndarray (n,) float64
+        Green signal of each band: the mean Green value of its images per second of
+        exposure (fraction of saturation per s) for a measured table, the predicted Green
+        integral (relative units) for a nominal one; NaN where unknown. Only the ratios
+        between bands matter: they put the bands of a reconstruction on the scale of the
+        light the camera saw (:meth:`as_response`).
     source : str
         ``"measured"``, ``"nominal"`` or the file the table was read from.
     labkit : dict
@@ -116,13 +123,16 @@ class ChannelSensitivity:
     reliable_b: np.ndarray
     reason_r: tuple[str, ...]
     reason_b: tuple[str, ...]
+    green_level: np.ndarray | None = None
     source: str = "measured"
     labkit: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.wavelengths_nm = np.asarray(self.wavelengths_nm, dtype=np.float64).ravel()
         n = self.wavelengths_nm.size
-        for name in ("r_over_g", "b_over_g", "residual_r", "residual_b"):
+        if self.green_level is None:
+            self.green_level = np.full(n, np.nan)
+        for name in ("r_over_g", "b_over_g", "green_level", "residual_r", "residual_b"):
             setattr(self, name, _column(getattr(self, name), np.float64, n, name))
         for name in ("pairs_r", "pairs_b"):
             setattr(self, name, _column(getattr(self, name), np.int64, n, name))
@@ -172,6 +182,7 @@ class ChannelSensitivity:
                 "illumination": self.illuminations[i],
                 "r_over_g": _finite_or_none(self.r_over_g[i]),
                 "b_over_g": _finite_or_none(self.b_over_g[i]),
+                "green_level": _finite_or_none(self.green_level[i]),
                 "pairs_r": int(self.pairs_r[i]),
                 "pairs_b": int(self.pairs_b[i]),
                 "residual_r": _finite_or_none(self.residual_r[i]),
@@ -207,11 +218,17 @@ class ChannelSensitivity:
         write_text_atomic(path, yaml.safe_dump(document, sort_keys=False, allow_unicode=True))
 
     def as_response(self) -> Spectra:
-        """The table as a camera response sampled at its bands: R = r/g, G = 1, B = b/g.
+        """The table as a camera response sampled at its bands (the thesis' sensor map).
 
-        This is the thesis' calibrated sensor map (Algorithm 12): each band's channel
-        sensitivities relative to its Green, so a spectral image reconstructed with it is
-        in units of each band's Green response. Between bands the response is linear.
+        R = r/g · ℓ, G = ℓ, B = b/g · ℓ per band, with ℓ the band's Green level relative to
+        the brightest band's (:attr:`green_level`), or ℓ = 1 in every band when the table
+        has no levels (the thesis' normalisation, Algorithm 12). With levels, a spectral
+        image reconstructed with this response is in units of the light the camera saw in
+        each band, so its bands are on comparable scales; without, each band is in units
+        of its own Green response, and bands the camera barely sees (e.g. 400 and 700 nm)
+        are hundreds of times smaller than the brightest. A reconstruction treats a response
+        sampled only at its bands as a discrete model
+        (:class:`reconstruction.image_formation.LatentSpace`).
 
         Raises
         ------
@@ -228,8 +245,18 @@ class ChannelSensitivity:
                     "the table cannot serve as a camera response; calibrate with images that "
                     "have signal in that band or leave the band out of the file"
                 )
-        values = np.column_stack([self.r_over_g, np.ones(len(self)), self.b_over_g])
+        level = np.ones(len(self))
+        if self.has_levels:
+            level = self.green_level / self.green_level.max()
+        values = (
+            np.column_stack([self.r_over_g, np.ones(len(self)), self.b_over_g]) * level[:, None]
+        )
         return Spectra(self.wavelengths_nm, np.maximum(values, 0.0), ("R", "G", "B"))
+
+    @property
+    def has_levels(self) -> bool:
+        """Whether every band has a positive, finite :attr:`green_level`."""
+        return bool(np.all(np.isfinite(self.green_level)) and np.all(self.green_level > 0))
 
     @classmethod
     def from_file(cls, path: str | Path) -> ChannelSensitivity:
@@ -352,6 +379,7 @@ def channel_sensitivity(
         reliable_b=[not r["b"].reasons for r in results],
         reason_r=tuple("; ".join(r["r"].reasons) for r in results),
         reason_b=tuple("; ".join(r["b"].reasons) for r in results),
+        green_level=[r["green_level"] for r in results],
         source="measured",
         labkit={
             "method": "thesis Algorithm 12 (first principal component of neighbour pairs)",
@@ -435,7 +463,28 @@ def _calibrate_band(
                 )
         fits[channel] = fit
     names = sorted({image.illumination for image in images})
-    return {"illumination": "+".join(names), "r": fits[_RED], "b": fits[_BLUE]}
+    return {
+        "illumination": "+".join(names),
+        "r": fits[_RED],
+        "b": fits[_BLUE],
+        "green_level": green_level(images),
+    }
+
+
+def green_level(images: Sequence[RawImage]) -> float:
+    """Mean Green value per second of exposure over images of one band (NaN if unknown).
+
+    Each image contributes the mean of its Green pixels divided by its ``exposure_s``
+    (fraction of saturation per s); the images of the band (several scenes) are averaged.
+    """
+    levels = []
+    for image in images:
+        if image.exposure_s is None or not image.exposure_s > 0:
+            return math.nan
+        raw = np.asarray(image.raw, dtype=np.float64)
+        green = raw[channel_index(image.cfa, raw.shape) == _GREEN]
+        levels.append(float(green.mean()) / float(image.exposure_s))
+    return float(np.mean(levels))
 
 
 def smooth_unsaturated_mask(
@@ -580,6 +629,7 @@ def nominal_channel_sensitivity(
         reliable_b=ok,
         reason_r=reason,
         reason_b=reason,
+        green_level=np.where(ok, green, np.nan),
         source="nominal",
         labkit={
             "method": "∫ q_c T L dλ / ∫ q_G T L dλ, trapezoid rule",
@@ -783,6 +833,10 @@ def _build(
             columns[key].append(int(count))
         for key in ("residual_r", "residual_b"):
             columns[key].append(number(where, row, key, required=False))
+        level = number(where, row, "green_level", required=False)
+        if level <= 0:
+            raise fail(where, "green_level", f"is {level:g}; a Green level must be positive")
+        columns["green_level"].append(level)
         for channel in ("r", "b"):
             reliable = flag(where, row, f"reliable_{channel}")
             key = f"{channel}_over_g"
@@ -813,6 +867,7 @@ def _build(
         reliable_b=picked["reliable_b"],
         reason_r=tuple(picked["reason_r"]),
         reason_b=tuple(picked["reason_b"]),
+        green_level=picked["green_level"],
         source=source,
         labkit={**(provenance or {}), "file": str(path)},
     )

@@ -236,6 +236,7 @@ def _sensor_map(images: list, rig, out: Path) -> dict[str, Any]:
                 "b_over_g": float(measured.b_over_g[i]),
                 "nominal_r_over_g": None if entry is None else float(nominal.r_over_g[entry]),
                 "nominal_b_over_g": None if entry is None else float(nominal.b_over_g[entry]),
+                "green_level": float(measured.green_level[i] / max(measured.green_level)),
                 "reliable": bool(measured.reliable[i]),
             }
         )
@@ -525,14 +526,17 @@ def _write_report(report, results, hdr, sensor, models, recons, evaluation) -> N
     report.heading("Sensor map")
     report.paragraph(
         "R/G and B/G of every band measured from the filtered images (thesis Algorithm 12), "
-        f"against the rig's stand-in response ({sensor['summary']['stand_in']}). The map is "
-        "the camera response of the synthesis and of the reconstruction."
+        f"against the rig's stand-in response ({sensor['summary']['stand_in']}), and each "
+        "band's mean Green level relative to the brightest band's. The map is the camera "
+        "response of the synthesis (ratios) and of the reconstruction (ratios × level: a "
+        "discrete model, one warp per band)."
     )
     report.table(
-        ["band (nm)", "R/G", "stand-in", "B/G", "stand-in", "reliable"],
+        ["band (nm)", "R/G", "stand-in", "B/G", "stand-in", "Green level", "reliable"],
         [
             [f"{b['wavelength_nm']:.0f}", f"{b['r_over_g']:.4g}", _cell(b["nominal_r_over_g"]),
-             f"{b['b_over_g']:.4g}", _cell(b["nominal_b_over_g"]), "yes" if b["reliable"] else "no"]
+             f"{b['b_over_g']:.4g}", _cell(b["nominal_b_over_g"]), _cell(b["green_level"]),
+             "yes" if b["reliable"] else "no"]
             for b in sensor["summary"]["bands"]
         ],
     )  # fmt: skip

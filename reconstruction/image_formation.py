@@ -7,6 +7,14 @@
   (fine) wavelength grid by the trapezoid rule (3.6), extrapolating B as the thesis does.
 * ``kind="colour"`` — the raw colour channels R, G, B themselves (3.27).
 
+A response tabulated only at the band centres — a sensor map (thesis Algorithm 12: each
+band's R/G and B/G, Green = 1) — is a discrete model and gets ``kernel="discrete"``: the
+latent image holds the band images themselves, their colours are the tabulated values
+(no integral; bands do not overlap), and each band is warped by the dispersion at its own
+centre. This is the image formation of the thesis' synthetic raw images (Algorithm 13).
+Interpolating such a table as a continuous response would mix the ratios of neighbouring
+bands, which can differ by two orders of magnitude (R/G at 550 and 600 nm).
+
 Either may carry a per-channel scale ``r`` (thesis §6.3, (6.1)): the unknown is then
 ``J = I / r`` and the priors act on J, which equalises how strongly bright and dark bands
 are smoothed.
@@ -50,6 +58,9 @@ from reconstruction.operators import (
 from reconstruction.operators.basis import choose_bands, sensitive_range
 from reconstruction.operators.dispersion import keys_kernel
 
+DISCRETE = "discrete"
+"""Kernel of a spectral space whose response is a sensor map sampled at the band centres."""
+
 
 @dataclass(frozen=True, eq=False)
 class LatentSpace:
@@ -62,8 +73,9 @@ class LatentSpace:
         Band centres of a spectral latent image, nm.
     response : Spectra or None
         Camera response R, G, B (spectral kind).
-    kernel : {"gaussian", "sinc"}
-        Kernel of the spectral basis B.
+    kernel : {"gaussian", "sinc", "discrete"}
+        Kernel of the spectral basis B; ``"discrete"`` for a sensor map (see the module
+        docstring).
     scale : ndarray (n,)
         Per-channel scale r of the §6.3 variant (ones for the plain problem).
     support_nm : (float, float) or None
@@ -84,10 +96,14 @@ class LatentSpace:
     ) -> LatentSpace:
         """Spectral latent space: bands from :func:`choose_bands` unless `centres_nm` given.
 
-        With `centres_nm`, the response needs no bandlimit (a sensor map sampled at a few
-        bands, whose Green is constant, serves).
+        With `centres_nm`, the response needs no bandlimit. A response sampled at exactly
+        the band centres (a sensor map) makes the space discrete, whatever `kernel` says.
         """
         response = _rgb(response)
+        if centres_nm is not None and _samples_centres(response, centres_nm):
+            centres = np.asarray(centres_nm, dtype=float)
+            support = (float(centres[0]), float(centres[-1]))
+            return cls("spectral", centres, response, DISCRETE, np.ones(centres.size), support)
         if centres_nm is None:
             selection = choose_bands(response)
             centres, sensitive = selection.centres_nm, selection.support_nm
@@ -132,6 +148,13 @@ class LatentSpace:
             if samples_nm is not None:
                 raise DataError("direct colour estimation has no wavelength samples")
             return (np.eye(3) * self.scale[None, :])[None]
+        if self.kernel == DISCRETE:
+            matrix = self.response.values.T * self.scale[None, :]  # (3, n)
+            if samples_nm is None:
+                return matrix[None]
+            if not np.array_equal(np.asarray(samples_nm, dtype=float), self.centres_nm):
+                raise DataError("a discrete (sensor-map) space samples Φ at its band centres")
+            return np.einsum("cn,jn->jcn", matrix, np.eye(self.centres_nm.size))
         fine = self.response.wavelengths
         weights = self.response.values * trapezoid_weights(fine)[:, None]  # (f, 3)
         basis = SpectralBasis((1, 1), self.centres_nm, fine, kernel=self.kernel).matrix  # (f, n)
@@ -144,7 +167,7 @@ class LatentSpace:
     def spectral_values(self, latent: np.ndarray) -> np.ndarray:
         """The spectrum at the band centres, ``B(r ⊙ J)`` at ``centres_nm`` (…, n)."""
         scaled = latent * self.scale
-        if self.kind == "colour":
+        if self.kind == "colour" or self.kernel == DISCRETE:
             return scaled
         at_centres = SpectralBasis((1, 1), self.centres_nm, self.centres_nm, kernel=self.kernel)
         return scaled @ at_centres.matrix.T
@@ -152,6 +175,13 @@ class LatentSpace:
     def raw_colour(self, latent: np.ndarray) -> np.ndarray:
         """The latent image in raw colour (…, 3), without dispersion."""
         return latent @ self.colour_matrix().T
+
+
+def _samples_centres(response: Spectra, centres_nm) -> bool:
+    """Is the response tabulated at exactly the band centres (a sensor map)?"""
+    centres = np.asarray(centres_nm, dtype=float)
+    wavelengths = np.asarray(response.wavelengths, dtype=float)
+    return wavelengths.shape == centres.shape and np.allclose(wavelengths, centres, atol=1e-6)
 
 
 def _rgb(response: Spectra) -> Spectra:
@@ -398,15 +428,18 @@ def build_formation(
             "spectral reconstruction needs a spectral (xylambda) dispersion model; a "
             "colour-channel model suits direct colour estimation (--latent colour)"
         )
-    samples = dispersion_samples(
-        model,
-        latent.support_nm,
-        origin=origin,
-        shape=shape,
-        min_count=2,
-        step_px=step_px,
-        overhang_px=overhang_px,
-    )
+    if latent.kernel == DISCRETE:
+        samples = latent.centres_nm
+    else:
+        samples = dispersion_samples(
+            model,
+            latent.support_nm,
+            origin=origin,
+            shape=shape,
+            min_count=2,
+            step_px=step_px,
+            overhang_px=overhang_px,
+        )
     phi = Dispersion(
         model,
         samples,

@@ -345,7 +345,9 @@ def reconstruct(
         ``"mean-colour"``: the §6.3 variant (reconstruct relative to a smooth spectrum
         fitted to the image's mean colour).
     kernel : {"gaussian", "sinc"}
-        Kernel of the spectral basis.
+        Kernel of the spectral basis. A response tabulated at exactly the band centres (a
+        sensor map, :meth:`calibration.ChannelSensitivity.as_response`) is a discrete model
+        whatever the kernel (:class:`~reconstruction.image_formation.LatentSpace`).
     rtol : float, optional
         ADMM relative tolerance per patch; default
         :func:`~reconstruction.solvers.admm.default_rtol`: 1e-5 when

@@ -179,11 +179,12 @@ def _sensitivity(args: argparse.Namespace) -> int:
 
 
 def sensitivity_table(measured, nominal) -> str:
-    """Measured vs nominal ratios per band, as aligned text."""
+    """Measured vs nominal ratios per band, and the relative Green level, as aligned text."""
     header = (
         f"{'band':>8}  {'R/G':>9} {'nominal':>9} {'diff':>8}  "
-        f"{'B/G':>9} {'nominal':>9} {'diff':>8}  reliable"
+        f"{'B/G':>9} {'nominal':>9} {'diff':>8}  {'level':>9}  reliable"
     )
+    peak = float(max(measured.green_level)) if measured.has_levels else math.nan
     lines = [header]
     for i, wavelength in enumerate(measured.wavelengths_nm):
         entry = None if nominal is None else nominal.index_of(wavelength)
@@ -199,7 +200,8 @@ def sensitivity_table(measured, nominal) -> str:
         reliable = "yes"
         if not measured.reliable[i]:
             reliable = f"no ({'; '.join(reasons)})" if reasons else "no"
-        lines.append(f"{wavelength:>5.1f} nm  {cells[0]}  {cells[1]}  {reliable}")
+        level = _number(float(measured.green_level[i]) / peak)
+        lines.append(f"{wavelength:>5.1f} nm  {cells[0]}  {cells[1]}  {level}  {reliable}")
     return "\n".join(lines)
 
 

@@ -62,6 +62,8 @@ def test_planted_ratios_are_recovered_for_every_layout(
     assert result.b_over_g[0] == pytest.approx(1.9, rel=0.005)
     assert result.reliable_r[0] and result.reliable_b[0]
     assert result.reason_r == ("",) and result.reason_b == ("",)
+    green = image.raw[channel_index(layout, image.raw.shape) == 1]
+    assert result.green_level[0] == pytest.approx(green.mean() / 0.5, rel=1e-6)
     # about half the pixels of every plane pass the gradient test, so roughly a quarter of
     # the 2 × 128 × 160 / 2 green–red neighbour pairs keep both members
     assert 0.15 * 128 * 160 < result.pairs_r[0] < 0.4 * 128 * 160
@@ -221,6 +223,12 @@ def test_nominal_ratios_equal_a_rendered_grey_scene(tmp_path: Path, make_rig) ->
         r, g, b = rendered[name].reshape(-1, 3).astype(np.float64).mean(axis=0)
         assert nominal.r_over_g[i] == pytest.approx(r / g, rel=1e-5)
         assert nominal.b_over_g[i] == pytest.approx(b / g, rel=1e-5)
+    greens = np.array(
+        [rendered[name][..., 1].astype(np.float64).mean() for name in nominal.illuminations]
+    )  # the predicted Green levels are relative: their ratios are the rendered ones
+    np.testing.assert_allclose(
+        nominal.green_level / nominal.green_level[3], greens / greens[3], rtol=1e-5
+    )
     only = nominal_channel_sensitivity(rig, ["650", "450"])
     assert only.illuminations == ("450", "650")
     assert only.r_over_g.tolist() == [nominal.r_over_g[1], nominal.r_over_g[5]]
@@ -252,6 +260,7 @@ def example_table() -> ChannelSensitivity:
         reliable_b=[True, True, True],
         reason_r=("only 0 green–red pairs (need 200), no fit", "", ""),
         reason_b=("", "", ""),
+        green_level=[0.002, 1.5, 0.03],
         labkit={"method": "test", "scenes": ["flat"]},
     )
 
@@ -263,7 +272,7 @@ def test_sensitivity_file_round_trip(tmp_path: Path, suffix: str) -> None:
     getattr(table, f"to_{suffix}")(path)
     back = ChannelSensitivity.from_file(path)
     for name in ("wavelengths_nm", "r_over_g", "b_over_g", "residual_r", "residual_b",
-                 "pairs_r", "pairs_b", "reliable_r", "reliable_b"):  # fmt: skip
+                 "pairs_r", "pairs_b", "reliable_r", "reliable_b", "green_level"):  # fmt: skip
         np.testing.assert_array_equal(getattr(back, name), getattr(table, name), err_msg=name)
     assert back.illuminations == table.illuminations
     assert back.reason_r == table.reason_r and back.reason_b == table.reason_b
@@ -279,6 +288,8 @@ def test_hand_written_csv_needs_only_the_ratios(tmp_path: Path) -> None:
     assert table.wavelengths_nm.tolist() == [450.0, 650.0]
     assert table.r_over_g.tolist() == [0.38, 11.7]
     assert table.illuminations == ("450", "650") and table.reliable.all()
+    assert np.isnan(table.green_level).all() and not table.has_levels
+    np.testing.assert_array_equal(table.as_response().values[:, 1], 1.0)  # the thesis' map
     assert table.index_of(450.03) == 0 and table.index_of(451) is None
 
 
@@ -294,6 +305,8 @@ def test_hand_written_csv_needs_only_the_ratios(tmp_path: Path) -> None:
          "line 2, column 'r_over_g' is missing"),
         ("bad.csv", "wavelength_nm,r_over_g,b_over_g\n550,-0.5,1\n",
          "line 2, column 'r_over_g' is -0.5"),
+        ("bad.csv", "wavelength_nm,r_over_g,b_over_g,green_level\n550,0.5,1,0\n",
+         "line 2, column 'green_level' is 0; a Green level must be positive"),
         ("bad.yaml", "format: 1\nbands:\n- {wavelength_nm: 450, r_over_g: 1, b_over_g: 1}\n"
          "- {wavelength_nm: 550, r_over_g: 1, b_over_g: x}\n", "bands[1].b_over_g is 'x'"),
         ("bad.yaml", "format: 1\nbands:\n- {wavelength_nm: 450, r_over_g: 1, b_over_G: 1}\n",
@@ -328,9 +341,10 @@ def test_a_measured_sensitivity_is_a_camera_response_sampled_at_its_bands(tmp_pa
         response = load_response(path)
         assert response.labels == ("R", "G", "B")
         np.testing.assert_array_equal(response.wavelengths, table.wavelengths_nm)
-        np.testing.assert_array_equal(response.values[:, 0], table.r_over_g)
-        np.testing.assert_array_equal(response.values[:, 1], 1.0)
-        np.testing.assert_array_equal(response.values[:, 2], table.b_over_g)
+        level = np.array([0.002, 1.5, 0.03]) / 1.5  # relative to the brightest band
+        np.testing.assert_allclose(response.values[:, 0], table.r_over_g * level, rtol=1e-15)
+        np.testing.assert_allclose(response.values[:, 1], level, rtol=1e-15)
+        np.testing.assert_allclose(response.values[:, 2], table.b_over_g * level, rtol=1e-15)
     write_response_csv(camera_response("Nikon 5100 (NPL)"), tmp_path / "curve.csv")
     assert not is_sensitivity_file(tmp_path / "curve.csv")
     np.testing.assert_array_equal(

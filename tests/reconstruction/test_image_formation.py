@@ -162,3 +162,68 @@ def test_mean_translation_operator_is_what_the_fourier_solver_inverts() -> None:
 def test_fourier_solver_needs_even_sizes() -> None:
     with pytest.raises(DataError, match="even"):
         FourierSolver((31, 32), "RGGB", normalised_colour())
+
+
+SENSOR_MAP_NM = np.array([450.0, 500.0, 550.0, 600.0, 650.0])
+SENSOR_MAP = (
+    np.array(
+        [
+            [0.12, 1.0, 5.0],
+            [0.02, 1.0, 0.85],
+            [0.011, 1.0, 0.038],
+            [2.6, 1.0, 0.009],
+            [9.8, 1.0, 0.1],
+        ]
+    )
+    * np.array([0.1, 0.14, 1.0, 0.13, 0.016])[:, None]
+)
+
+
+def sensor_map_space():
+    from labkit.spectra import Spectra
+    from reconstruction.image_formation import LatentSpace
+
+    response = Spectra(SENSOR_MAP_NM, SENSOR_MAP, ("R", "G", "B"))
+    return LatentSpace.spectral(response, SENSOR_MAP_NM)
+
+
+def test_a_sensor_map_is_a_discrete_space() -> None:
+    """A response tabulated at exactly the band centres (thesis Alg. 12) is the discrete model
+    of Alg. 13: its colour matrix is the table itself (no integral, no overlap between bands;
+    a Gaussian basis would give the 550 nm band R/G ≈ 0.18 from its neighbours instead of
+    0.011), and the spectrum at the centres is the latent image."""
+    space = sensor_map_space()
+    assert space.kernel == "discrete"
+    np.testing.assert_array_equal(space.colour_matrix(), SENSOR_MAP.T)
+    x = np.random.default_rng(3).uniform(size=(4, 5, 5))
+    np.testing.assert_array_equal(space.spectral_values(x), x)
+    scaled = space.with_scale(np.array([1.0, 2.0, 0.5, 1.0, 3.0]))
+    np.testing.assert_allclose(scaled.colour_matrix(), SENSOR_MAP.T * [1.0, 2.0, 0.5, 1.0, 3.0])
+
+
+def test_each_band_of_a_sensor_map_is_warped_by_its_own_dispersion() -> None:
+    """Dispersion (λ − 600)/50 px along x: whole-pixel shifts −3 … +1 px at the band centres.
+    A latent image with one band set gives that band, shifted by its own shift, in its
+    colours (periodic boundary: a roll), and the operator passes the dot test."""
+    space = sensor_map_space()
+    model = spectral_model(ConstantField((2.0, 0.0), per_nm=True))
+    shape = (24, 36)
+    a = build_formation(space, shape, "GBRG", model=model)
+    plain = a.without_dispersion()
+    rng = np.random.default_rng(4)
+    signs = set()
+    for k, wavelength in enumerate(SENSOR_MAP_NM):
+        shift = round((wavelength - 600.0) / 50.0)
+        x = np.zeros((*shape, SENSOR_MAP_NM.size))
+        x[..., k] = rng.uniform(size=shape)
+        warped = a.forward(x)
+        matches = [
+            sign
+            for sign in (-1, 1)
+            if np.allclose(warped, plain.forward(np.roll(x, sign * shift, axis=1)), atol=1e-12)
+        ]
+        assert matches, f"band {wavelength:g} nm is not shifted by {shift} px"
+        if shift:
+            signs.update(matches)
+    assert len(signs) == 1  # one direction for every band
+    assert dot_test(a, rng=np.random.default_rng(5)).relative_error < 1e-10
