@@ -72,6 +72,7 @@ def run_real_demo(
     *,
     data: str | Path | None = None,
     rig_path: str | Path | None = None,
+    patterns: Sequence[str] | None = None,
     progress: bool | None = None,
 ) -> Path:
     """Run the whole job on real captures into `out`; return the path of ``report.html``.
@@ -86,6 +87,9 @@ def run_real_demo(
         :func:`labkit.data.real_colorchecker`.
     rig_path : str or Path, optional
         Rig YAML of the lab (default: :func:`real_rig_path`).
+    patterns : sequence of str, optional
+        File-name patterns of the frames and darks (``labkit session import --pattern``;
+        default :data:`labkit.data.REAL_COLORCHECKER_PATTERNS`).
     progress : bool, optional
         Progress bars; default: only on a terminal.
 
@@ -115,7 +119,7 @@ def run_real_demo(
         stages.update()
         return value
 
-    session = stage("import", lambda: _import(inputs, rig, out))
+    session = stage("import", lambda: _import(inputs, rig, out, patterns))
     hdr = stage("hdr", lambda: _hdr(out))
     scene, images = _filtered(out)
     sensor = stage("sensor map", lambda: _sensor_map(images, rig, out))
@@ -157,7 +161,7 @@ def _inputs(data: Path) -> dict[str, Path]:
     return inputs
 
 
-def _import(inputs: dict[str, Path], rig, out: Path) -> dict[str, Any]:
+def _import(inputs: dict[str, Path], rig, out: Path, patterns) -> dict[str, Any]:
     import shutil
 
     from labkit.data import REAL_COLORCHECKER_PATTERNS
@@ -167,7 +171,10 @@ def _import(inputs: dict[str, Path], rig, out: Path) -> dict[str, Any]:
     if folder.exists():
         shutil.rmtree(folder)
     session, _ = import_session(
-        folder, [inputs["frames"], inputs["darks"]], REAL_COLORCHECKER_PATTERNS, rig
+        folder,
+        [inputs["frames"], inputs["darks"]],
+        list(patterns or REAL_COLORCHECKER_PATTERNS),
+        rig,
     )
     records = list(session.records.values())
     first = records[0]

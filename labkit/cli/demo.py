@@ -36,6 +36,13 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="with --real: folder with frames/, darks/ and labels.png named like the vendored "
         "set (default: labkit's own real ColorChecker frames)",
     )
+    parser.add_argument(
+        "--pattern",
+        action="append",
+        metavar="PATTERN",
+        help="with --real: file-name pattern of the frames and darks, as for `labkit session "
+        "import` (repeatable; default: the vendored set's)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     parser.set_defaults(handler=_demo)
 
@@ -43,8 +50,8 @@ def register(commands: argparse._SubParsersAction) -> None:
 def _demo(args: argparse.Namespace) -> int:
     from labkit.errors import ConfigError
 
-    if not args.real and args.data is not None:
-        raise ConfigError("--data names real captures; add --real")
+    if not args.real and (args.data is not None or args.pattern):
+        raise ConfigError("--data and --pattern name real captures; add --real")
     if args.real and args.quick:
         raise ConfigError("--quick applies to the simulated demo; --real runs in under 2 minutes")
     if args.real:
@@ -54,6 +61,7 @@ def _demo(args: argparse.Namespace) -> int:
             args.out,
             data=args.data,
             rig_path=args.rig,
+            patterns=args.pattern,
             progress=False if args.no_progress else None,
         )
     else:
