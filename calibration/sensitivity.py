@@ -245,9 +245,7 @@ class ChannelSensitivity:
                     "the table cannot serve as a camera response; calibrate with images that "
                     "have signal in that band or leave the band out of the file"
                 )
-        level = np.ones(len(self))
-        if self.has_levels:
-            level = self.green_level / self.green_level.max()
+        level = self.relative_green_level if self.has_levels else np.ones(len(self))
         values = (
             np.column_stack([self.r_over_g, np.ones(len(self)), self.b_over_g]) * level[:, None]
         )
@@ -257,6 +255,13 @@ class ChannelSensitivity:
     def has_levels(self) -> bool:
         """Whether every band has a positive, finite :attr:`green_level`."""
         return bool(np.all(np.isfinite(self.green_level)) and np.all(self.green_level > 0))
+
+    @property
+    def relative_green_level(self) -> np.ndarray:
+        """(n,) :attr:`green_level` relative to the brightest band's; NaN without levels."""
+        if not self.has_levels:
+            return np.full(len(self), np.nan)
+        return self.green_level / self.green_level.max()
 
     @classmethod
     def from_file(cls, path: str | Path) -> ChannelSensitivity:

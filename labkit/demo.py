@@ -75,19 +75,9 @@ def run_demo(out: str | Path, *, rig_path: str | Path | None = None, quick: bool
     rig_file = Path(rig_path) if rig_path else default_rig_path()
     shape = QUICK_SHAPE if quick else DEMO_SHAPE
     rigs = demo_rigs(rig_file, shape)
-    times: dict[str, float] = {}
     results: dict[str, Any] = {"shape": list(shape), "rig": str(rig_file), "quick": quick}
     report = Report(f"labkit demo — {rigs['calibration'].name}")
-    stages = tqdm(total=5, desc="demo", unit="stage")
-
-    def stage(name: str, function: Callable[[], Any]) -> Any:
-        stages.set_description(f"demo: {name}")
-        start = time.perf_counter()
-        value = function()
-        times[name] = time.perf_counter() - start
-        stages.update()
-        return value
-
+    stage = Stages(5, "demo")
     captures = stage("capture", lambda: _capture(rigs, out))
     stage("hdr", lambda: _hdr(out))
     models = stage("calibrate", lambda: _calibrate(rigs["calibration"], out))
@@ -95,7 +85,8 @@ def run_demo(out: str | Path, *, rig_path: str | Path | None = None, quick: bool
     evaluations = stage(
         "evaluate", lambda: _evaluate(rigs["calibration"], out, models, recons, results)
     )
-    stages.close()
+    stage.close()
+    times = stage.seconds
     results["seconds"] = times
     results["capture"] = captures
     results["calibration"] = models["summary"]
@@ -111,6 +102,39 @@ def run_demo(out: str | Path, *, rig_path: str | Path | None = None, quick: bool
     )
     _, page = report.write(out)
     return page
+
+
+class Stages:
+    """Runs the named stages of a job under one progress bar and records their wall time.
+
+    ``stages(name, function)`` runs `function` and returns its value; :attr:`seconds` maps
+    each stage's name to its wall time, s, in order.
+    """
+
+    def __init__(self, total: int, description: str, *, disable: bool | None = False) -> None:
+        self.description = description
+        self.seconds: dict[str, float] = {}
+        self.bar = tqdm(total=total, desc=description, unit="stage", disable=disable)
+
+    def __call__(self, name: str, function: Callable[[], Any]) -> Any:
+        self.bar.set_description(f"{self.description}: {name}")
+        start = time.perf_counter()
+        value = function()
+        self.seconds[name] = time.perf_counter() - start
+        self.bar.update()
+        return value
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+def stage_table(report: Report, seconds: dict[str, float]) -> None:
+    """Add the time of every stage, and their total, to `report` as a table."""
+    report.table(
+        ["stage", "time (s)"],
+        [[name, f"{value:.1f}"] for name, value in seconds.items()]
+        + [["total", f"{sum(seconds.values()):.1f}"]],
+    )
 
 
 def demo_rigs(rig_file: Path, shape: tuple[int, int]) -> dict[str, Rig]:
@@ -255,7 +279,6 @@ def _reconstruct(rig: Rig, out: Path, models: dict[str, Any]) -> dict[str, Any]:
             "result": result,
             "raw": image.raw,
             "cfa": image.cfa,
-            "seconds": summary["seconds"],
             "summary": summary,
         }
     return results
@@ -328,7 +351,7 @@ def _evaluate(
         images, seconds = baseline_images(raw, cfa=cfa, colour_dispersion=models["colour"])
         for name, r in ours.items():
             images[f"spectral: {name}"] = r["result"].raw_colour
-            seconds[f"spectral: {name}"] = r["seconds"]
+            seconds[f"spectral: {name}"] = r["summary"]["seconds"]
         spectral = {
             f"spectral: {n}": (r["result"].spectral, r["result"].wavelengths_nm)
             for n, r in ours.items()
@@ -460,11 +483,7 @@ def _write_report(report, rigs, rig_file, shape, times, captures, models, recons
         f"{sim.lens.max_shift_px:g} px of lateral chromatic aberration at the corner "
         f"(reference {sim.lens.reference_nm:g} nm). Total {sum(times.values()):.0f} s."
     )
-    report.table(
-        ["stage", "time (s)"],
-        [[name, f"{seconds:.1f}"] for name, seconds in times.items()]
-        + [["total", f"{sum(times.values()):.1f}"]],
-    )
+    stage_table(report, times)
     report.heading("Rig")
     report.figures([("rig_spectra.png", "camera response, lamp and filter transmissions")])
     report.heading("Capture and HDR")

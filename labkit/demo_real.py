@@ -28,19 +28,22 @@ The input is a folder of real captures laid out like :func:`labkit.data.real_col
 from __future__ import annotations
 
 import json
-import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from tqdm import tqdm
 
+from labkit.demo import Stages, method_figures, reconstruct_and_save, save_models, stage_table
 from labkit.errors import DataError
 from labkit.io import spectral_preview, write_png, write_text_atomic
 from labkit.io.tiff import json_default
 from labkit.plots import plot_patch_spectra
 from labkit.report import Report
+from labkit.spectra.datasets import COLORCHECKER_PATCHES
+
+if TYPE_CHECKING:
+    from calibration.multispectral import Synthesis
 
 REFERENCE_BAND = "600"
 """Filter whose geometry the spectral dispersion model maps every band onto."""
@@ -108,17 +111,7 @@ def run_real_demo(
     rig = load_rig(rig_file)
     out.mkdir(parents=True, exist_ok=True)
     disable = None if progress is None else not progress
-    times: dict[str, float] = {}
-    stages = tqdm(total=7, desc="demo --real", unit="stage", disable=disable)
-
-    def stage(name: str, function: Callable[[], Any]) -> Any:
-        stages.set_description(f"demo --real: {name}")
-        start = time.perf_counter()
-        value = function()
-        times[name] = time.perf_counter() - start
-        stages.update()
-        return value
-
+    stage = Stages(7, "demo --real", disable=disable)
     session = stage("import", lambda: _import(inputs, rig, out, patterns))
     hdr = stage("hdr", lambda: _hdr(out))
     scene, images = _filtered(out)
@@ -127,12 +120,12 @@ def run_real_demo(
     models = stage("calibrate", lambda: _calibrate(images, synthesis, rig, out))
     recons = stage("reconstruct", lambda: _reconstruct(synthesis, sensor, models, out, disable))
     evaluation = stage("evaluate", lambda: _evaluate(inputs, synthesis, models, recons, out))
-    stages.close()
+    stage.close()
     results = {
         "data": str(data),
         "rig": str(rig_file),
         "scene": scene,
-        "seconds": times,
+        "seconds": stage.seconds,
         "import": session,
         "hdr": hdr["summary"],
         "sensor_map": sensor["summary"],
@@ -224,7 +217,7 @@ def _filtered(out: Path) -> tuple[str, list]:
 
 def _sensor_map(images: list, rig, out: Path) -> dict[str, Any]:
     from calibration import channel_sensitivity, nominal_channel_sensitivity
-    from calibration.sensitivity import load_response, plot_channel_sensitivity
+    from calibration.sensitivity import plot_channel_sensitivity
 
     measured = channel_sensitivity(images)
     nominal = nominal_channel_sensitivity(rig)
@@ -235,7 +228,7 @@ def _sensor_map(images: list, rig, out: Path) -> dict[str, Any]:
     plot_channel_sensitivity(measured, nominal, folder / "sensitivity.png")
     rows = []
     for i, wavelength in enumerate(measured.wavelengths_nm):
-        entry = nominal.index_of(wavelength) if nominal is not None else None
+        entry = nominal.index_of(wavelength)
         rows.append(
             {
                 "wavelength_nm": float(wavelength),
@@ -243,35 +236,33 @@ def _sensor_map(images: list, rig, out: Path) -> dict[str, Any]:
                 "b_over_g": float(measured.b_over_g[i]),
                 "nominal_r_over_g": None if entry is None else float(nominal.r_over_g[entry]),
                 "nominal_b_over_g": None if entry is None else float(nominal.b_over_g[entry]),
-                "green_level": float(measured.green_level[i] / max(measured.green_level)),
+                "green_level": float(measured.relative_green_level[i]),
                 "reliable": bool(measured.reliable[i]),
             }
         )
     return {
         "sensitivity": measured,
-        "response": load_response(folder / "sensitivity.yaml"),
-        "path": folder / "sensitivity.yaml",
+        "response": measured.as_response(),
         "summary": {"bands": rows, "stand_in": rig.camera.response},
     }
 
 
-def _synthesize(images: list, sensor: dict[str, Any], scene: str, out: Path) -> dict[str, Any]:
+def _synthesize(images: list, sensor: dict[str, Any], scene: str, out: Path) -> Synthesis:
     from calibration import synthesize_multispectral, write_synthesis
 
     synthesis = synthesize_multispectral(images, sensor["sensitivity"])
-    paths = write_synthesis(synthesis, out / "synthesis", scene)
+    write_synthesis(synthesis, out / "synthesis", scene)
     cube = synthesis.multispectral
     write_png(
         out / "synthesis" / f"{scene}-multispectral.png",
         spectral_preview(cube.cube, cube.wavelengths_nm),
     )
-    return {"synthesis": synthesis, "paths": paths, "scene": scene}
+    return synthesis
 
 
-def _calibrate(images: list, synthesis: dict[str, Any], rig, out: Path) -> dict[str, Any]:
+def _calibrate(images: list, synthesis: Synthesis, rig, out: Path) -> dict[str, Any]:
     from calibration.bands import filter_bands
     from calibration.dispersion_calibration import calibrate_dispersion
-    from labkit.demo import save_models
 
     bands = filter_bands(rig, images=images)
     rng = np.random.default_rng(2019)
@@ -284,9 +275,7 @@ def _calibrate(images: list, synthesis: dict[str, Any], rig, out: Path) -> dict[
         rng=rng,
         workers=2,
     )
-    colour = calibrate_dispersion(
-        [synthesis["synthesis"].raw], reference="G", keypoints="registration", rng=rng
-    )
+    colour = calibrate_dispersion([synthesis.raw], reference="G", keypoints="registration", rng=rng)
     summary = save_models(spectral, colour, out / "calibration")
     summary["bands"] = [
         {
@@ -302,15 +291,14 @@ def _calibrate(images: list, synthesis: dict[str, Any], rig, out: Path) -> dict[
 
 
 def _reconstruct(
-    synthesis: dict[str, Any],
+    synthesis: Synthesis,
     sensor: dict[str, Any],
     models: dict[str, Any],
     out: Path,
     disable: bool | None,
 ) -> dict[str, Any]:
-    from labkit.demo import reconstruct_and_save
 
-    raw = synthesis["synthesis"].raw
+    raw = synthesis.raw
     response = sensor["response"]
     results = {}
     for name, (slug, options) in VARIANTS.items():
@@ -378,8 +366,9 @@ def patch_spectral_errors(
     Returns
     -------
     dict
-        ``"mrae"``, ``"rmse"`` (means over the patches), ``"estimate"`` (24, bands) in
-        reflectance units after the registration, and ``"truth"`` (24, bands).
+        ``"mrae"``, ``"rmse"`` (means over the patches), ``"per_patch_mrae"`` (24,),
+        ``"estimate"`` (24, bands) in reflectance units after the registration, and
+        ``"truth"`` (24, bands).
     """
     from reconstruction.metrics import spectral_errors
 
@@ -389,40 +378,31 @@ def patch_spectral_errors(
     errors = spectral_errors(
         truth[:, None, :], estimate[:, None, :], ssim=False, register=True, floor=0.0
     )
-    scale = (truth * estimate).sum(axis=0) / np.maximum((estimate * estimate).sum(axis=0), 1e-300)
     return {
         "mrae": float(errors.mrae),
         "rmse": float(errors.rmse_pixel),
-        "estimate": estimate * scale,
+        "per_patch_mrae": errors.mrae_map[:, 0].filled(np.nan),
+        "estimate": estimate * np.asarray(errors.scale),
         "truth": truth,
     }
 
 
 def _evaluate(
     inputs: dict[str, Path],
-    synthesis: dict[str, Any],
+    synthesis: Synthesis,
     models: dict[str, Any],
     recons: dict[str, Any],
     out: Path,
 ) -> dict[str, Any]:
-    from labkit.io.plane import read_plane
+    from labkit.io.plane import read_labels
     from labkit.spectra import colorchecker_reflectances
-    from labkit.spectra.datasets import COLORCHECKER_PATCHES
     from reconstruction import baseline_images, evaluate
 
-    raw = synthesis["synthesis"].raw
-    labels = read_plane(inputs["labels"], what="label image")
-    if labels.ndim == 3:
-        labels = labels[..., 0]
-    if labels.shape != raw.raw.shape:
-        raise DataError(
-            f"{inputs['labels']}: label image is {labels.shape[1]}×{labels.shape[0]} px but "
-            f"the frames are {raw.raw.shape[1]}×{raw.raw.shape[0]}; it must share their grid"
-        )
-    labels = np.asarray(labels).astype(np.int32)
+    raw = synthesis.raw
+    labels = read_labels(inputs["labels"], raw.raw.shape, what="label image")
     centres = patch_centres(labels)
     reflectances = colorchecker_reflectances("measured")
-    multispectral = synthesis["synthesis"].multispectral
+    multispectral = synthesis.multispectral
     patch = {
         "multispectral": patch_spectral_errors(
             multispectral.cube, multispectral.wavelengths_nm, centres, reflectances
@@ -441,18 +421,13 @@ def _evaluate(
     folder = out / "evaluation"
     figures = _figures(out, folder, labels, images, evaluation)
     figures["spectra"] = _spectra_figure(folder, out, patch, recons, multispectral, reflectances)
-    names = [COLORCHECKER_PATCHES[i] for i in range(24)]
     summary = {
         "patch_centres": {
             name: {
                 "mrae": e["mrae"],
                 "rmse": e["rmse"],
                 "per_patch_mrae": dict(
-                    zip(
-                        names,
-                        (np.abs(e["estimate"] - e["truth"]) / e["truth"]).mean(axis=1).tolist(),
-                        strict=True,
-                    )
+                    zip(COLORCHECKER_PATCHES, e["per_patch_mrae"].tolist(), strict=True)
                 ),
             }
             for name, e in patch.items()
@@ -464,7 +439,6 @@ def _evaluate(
 
 def _figures(out, folder, labels, images, evaluation) -> dict[str, Any]:
     """Display images on one scale, crops at the chart's corners, the edge-error chart."""
-    from labkit.demo import method_figures
 
     ys, xs = np.nonzero(labels)
     corners = [(ys.min(), xs.min()), (ys.min(), xs.max()), (ys.max(), xs.max())]
@@ -473,8 +447,6 @@ def _figures(out, folder, labels, images, evaluation) -> dict[str, Any]:
 
 
 def _spectra_figure(folder, out, patch, recons, multispectral, reflectances) -> str:
-    from labkit.demo import PATCH_NAMES
-
     fine = np.arange(400.0, 701.0, 2.0)
     truth = reflectances.resample(fine).values.T[list(SPECTRA_PATCHES)]
     wavelengths = {"multispectral": multispectral.wavelengths_nm}
@@ -484,7 +456,8 @@ def _spectra_figure(folder, out, patch, recons, multispectral, reflectances) -> 
         for name, w in wavelengths.items()
     }
     path = folder / "patch_spectra.png"
-    plot_patch_spectra((fine, truth), estimates, [PATCH_NAMES[i] for i in SPECTRA_PATCHES], path)
+    names = [COLORCHECKER_PATCHES[i] for i in SPECTRA_PATCHES]
+    plot_patch_spectra((fine, truth), estimates, names, path)
     return str(path.relative_to(out))
 
 
@@ -497,11 +470,7 @@ def _write_report(report, results, hdr, sensor, models, recons, evaluation) -> N
         "raw images (thesis §4.2.4) → dispersion calibration → reconstruction → evaluation "
         f"against the chart's ASD spectrometer reflectances. Total {sum(times.values()):.0f} s."
     )
-    report.table(
-        ["stage", "time (s)"],
-        [[name, f"{seconds:.1f}"] for name, seconds in times.items()]
-        + [["total", f"{sum(times.values()):.1f}"]],
-    )
+    stage_table(report, times)
     report.heading("Import and HDR")
     report.paragraph(
         f"{imported['frames']} frames and {imported['dark_frames']} dark frames; levels "

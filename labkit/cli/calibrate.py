@@ -184,7 +184,6 @@ def sensitivity_table(measured, nominal) -> str:
         f"{'band':>8}  {'R/G':>9} {'nominal':>9} {'diff':>8}  "
         f"{'B/G':>9} {'nominal':>9} {'diff':>8}  {'level':>9}  reliable"
     )
-    peak = float(max(measured.green_level)) if measured.has_levels else math.nan
     lines = [header]
     for i, wavelength in enumerate(measured.wavelengths_nm):
         entry = None if nominal is None else nominal.index_of(wavelength)
@@ -200,7 +199,7 @@ def sensitivity_table(measured, nominal) -> str:
         reliable = "yes"
         if not measured.reliable[i]:
             reliable = f"no ({'; '.join(reasons)})" if reasons else "no"
-        level = _number(float(measured.green_level[i]) / peak)
+        level = _number(float(measured.relative_green_level[i]))
         lines.append(f"{wavelength:>5.1f} nm  {cells[0]}  {cells[1]}  {level}  {reliable}")
     return "\n".join(lines)
 

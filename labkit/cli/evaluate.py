@@ -94,7 +94,9 @@ def _evaluate(args: argparse.Namespace) -> int:
         model = load_dispersion_model(args.colour_dispersion)
     boxes = labels = truth = None
     if args.labels is not None:
-        labels = _read_labels(args.labels, raw.raw.shape)
+        from labkit.io.plane import read_labels
+
+        labels = read_labels(args.labels, raw.raw.shape)
     if args.scene is not None:
         world = _world(args.rig, raw.raw.shape)
         if args.truth:
@@ -160,21 +162,6 @@ def _read_rgb(path: Path, shape: tuple[int, int]):
             f"{shape[1]}×{shape[0]} px; give images of the same raw image"
         )
     return rgb
-
-
-def _read_labels(path: Path, shape: tuple[int, int]):
-    import numpy as np
-
-    from labkit.errors import DataError
-    from labkit.io.plane import read_plane
-
-    labels = read_plane(path, what="--labels")
-    if labels.ndim != 2 or labels.shape != tuple(shape):
-        raise DataError(
-            f"--labels {path}: expected a single-channel {shape[1]}×{shape[0]} label image, "
-            f"got shape {labels.shape}"
-        )
-    return labels.astype(np.int32)
 
 
 def _world(rig_path: Path | None, shape: tuple[int, int]):

@@ -40,3 +40,33 @@ def read_plane(path: str | Path, *, what: str = "image") -> np.ndarray:
             return np.asarray(image)
     except Exception as error:
         raise DataError(f"{what} {path}: not a readable image ({error})") from None
+
+
+def read_labels(path: str | Path, shape: tuple[int, int], *, what: str = "--labels") -> np.ndarray:
+    """A patch label image (0 = background, 1, 2, … = patches) on a raw image's grid.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``.npy``, TIFF or PNG (read by :func:`read_plane`).
+    shape : (rows, cols)
+        The raw image's size, px.
+    what : str
+        How error messages name the file.
+
+    Returns
+    -------
+    ndarray (rows, cols) int32
+
+    Raises
+    ------
+    DataError
+        Missing or unreadable file, several channels, or another size.
+    """
+    labels = read_plane(path, what=what)
+    if labels.ndim != 2 or labels.shape != tuple(shape):
+        raise DataError(
+            f"{what} {path}: expected a single-channel {shape[1]}×{shape[0]} label image, "
+            f"got shape {labels.shape}"
+        )
+    return labels.astype(np.int32)

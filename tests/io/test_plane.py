@@ -10,9 +10,8 @@ import tifffile
 from PIL import Image
 
 from labkit.cli.calibrate import read_mask
-from labkit.cli.evaluate import _read_labels
 from labkit.errors import DataError
-from labkit.io.plane import read_plane
+from labkit.io.plane import read_labels, read_plane
 
 
 def _labels() -> np.ndarray:
@@ -29,7 +28,7 @@ def test_every_format_gives_back_the_stored_pixels(tmp_path: Path) -> None:
     np.testing.assert_array_equal(read_plane(tmp_path / "l.npy"), labels)
     np.testing.assert_array_equal(read_plane(tmp_path / "l.tiff"), labels)
     np.testing.assert_array_equal(read_plane(tmp_path / "l.png"), labels.astype(np.uint8) % 200)
-    np.testing.assert_array_equal(_read_labels(tmp_path / "l.tiff", (12, 16)), labels)
+    np.testing.assert_array_equal(read_labels(tmp_path / "l.tiff", (12, 16)), labels)
 
 
 def test_a_colour_mask_counts_any_non_zero_channel(tmp_path: Path) -> None:
@@ -45,7 +44,7 @@ def test_missing_unreadable_and_misshapen_files_are_named(tmp_path: Path) -> Non
         read_mask(tmp_path / "nothing.png")
     (tmp_path / "junk.png").write_text("not an image")
     with pytest.raises(DataError, match=r"--labels .*junk\.png: not a readable image"):
-        _read_labels(tmp_path / "junk.png", (12, 16))
+        read_labels(tmp_path / "junk.png", (12, 16))
     np.save(tmp_path / "small.npy", np.zeros((4, 4), np.int32))
     with pytest.raises(DataError, match=r"16×12 label image, got shape \(4, 4\)"):
-        _read_labels(tmp_path / "small.npy", (12, 16))
+        read_labels(tmp_path / "small.npy", (12, 16))
