@@ -29,8 +29,19 @@ criterion at every combination of the two inner values, the interval narrowed ar
 best, at least 6 and at most 19 rounds, stopping early when the best value improves by
 less than 1e-6 relative. As in §5.4.1 the selection runs without the dispersion model, on
 one or more representative patches; each solve is warm-started from the nearest previous
-solution, and uses a looser tolerance than the final reconstruction (the criterion only
-needs a few significant digits).
+solution, and uses a looser tolerance than the final reconstruction.
+
+Those loose solves stop short of the images the reconstruction returns, and where they
+stop depends on the order of the search, so the weight they choose can move when the
+reconstruction's tolerance is tightened. Where the reconstruction reaches the optimum —
+non-negative L2-type problems with spectral smoothness, the default — ``exact=True``
+scores every weight on the exact optimum instead (the dual active-set method, cheap
+without Φ), and the criterion is then a smooth function of the weight that golden-section
+search minimises with one solve per round instead of Algorithm 3's two. At σ = 0 the
+problem's optimum is not the image ADMM's early stop returns, and the criterion scored on
+either (the optimum, or the early stop at the reconstruction's own tolerance) drifts to
+tiny weights (the DMC's failure mode, §3.6), so the thesis' loose search stays there
+(figures in the README, weight selection).
 """
 
 from __future__ import annotations
@@ -51,6 +62,8 @@ from reconstruction.solvers.admm import solve
 CRITERIA = ("mdc", "msec", "dmc", "dmc-malvar", "dmc-menon")
 LOWEST, HIGHEST = float(np.finfo(np.float64).eps), 1e10
 MIN_ROUNDS, MAX_ROUNDS, TOLERANCE = 6, 19, 1e-6
+DECADES_TOLERANCE = 0.02
+"""Width (log10 w) at which the golden-section search of a single weight stops: 5 %."""
 
 
 @dataclass
@@ -117,13 +130,15 @@ class _Evaluator:
         # 0.105). L2 priors keep the warm start: with it the DMC picks 4.7e-4 for L2, with
         # their own starts 2.5e-5 and a worse image (spectral RMSE 0.100 against 0.095).
         self.own_starts = any(t.norm == 1 for t in self.problems[0].terms)
+        # an exact solve's result does not depend on its start
+        self.exact = bool(solve_options.get("exact_nonneg"))
 
     def solutions(self, weights: tuple[float, ...]) -> list[np.ndarray]:
         if weights not in self._cache:
-            start = None if self.own_starts else self._nearest(weights)
+            start = None if self.own_starts or self.exact else self._nearest(weights)
             out = []
             for i, p in enumerate(self.problems):
-                if self.own_starts:
+                if self.own_starts or self.exact:
                     x0 = None  # solve()'s default: initial_estimate at these weights
                 elif start is None:
                     # the first weight starts from zeros (Algorithm 3): from solve()'s
@@ -189,9 +204,15 @@ def select_weights(
     truth_matrix: np.ndarray | None = None,
     rtol: float = 1e-3,
     max_iter: int = 300,
+    exact: bool = False,
     progress: Callable[[int, float], None] | None = None,
 ) -> WeightSelection:
-    """Algorithm 3 on one or more patch problems (their current weights are ignored).
+    """Choose the prior weights by a criterion evaluated on patch solves (§3.6).
+
+    With ``exact=True`` every weight is scored on the exact optimum of the patch problem,
+    and a single weight is searched by golden section in log10 w over [ε, 1e10] until the
+    bracket is :data:`DECADES_TOLERANCE` wide; otherwise (and for two or more weights)
+    Algorithm 3 scores the thesis' loose solves (module docstring).
 
     Parameters
     ----------
@@ -204,10 +225,15 @@ def select_weights(
         Maps a latent pixel to the truth's channels (e.g. B at the band centres); default
         the identity.
     rtol, max_iter : float, int
-        ADMM tolerance and iteration limit of the selection solves. They stop on ADMM's
-        residual test alone (``settle=False`` of :func:`~reconstruction.solvers.admm.solve`):
-        at the thesis' loose tolerance they promise no distance to the optimum, and the
-        wait for the objective to settle is what would cost most here (README).
+        ADMM tolerance and iteration limit of the loose selection solves. They stop on
+        ADMM's residual test alone (``settle=False`` of
+        :func:`~reconstruction.solvers.admm.solve`): at the thesis' loose tolerance they
+        promise no distance to the optimum.
+    exact : bool
+        Score the exact optimum (``exact_nonneg`` of :func:`~reconstruction.solvers.admm.solve`;
+        non-negative L2-type problems; found without Φ by the dual active-set method): the
+        image a reconstruction with spectral smoothness returns to within 1e-4, so that
+        the weight chosen does not depend on any solver tolerance.
     progress : callable, optional
         ``progress(round, best_value)`` after each round.
 
@@ -230,28 +256,76 @@ def select_weights(
         criterion,
         truths,
         truth_matrix,
-        {"rtol": rtol, "max_iter": max_iter, "settle": False},
+        {"exact_nonneg": True} if exact else {"rtol": rtol, "max_iter": max_iter, "settle": False},
     )
     if criterion == "mdc":
         evaluate.prepare_mdc(count)
+    path: list[dict] = []
+
+    def score(weights: tuple[float, ...]) -> float:
+        value = evaluate(weights)
+        path.append({"weights": list(weights), "value": value})
+        return value
+
+    # golden section needs a criterion free of solver noise, which exact solves give
+    search = _golden_section if exact and count == 1 else _grid_search
+    rounds = search(score, count, progress)
+    best = min(path, key=lambda entry: entry["value"])
+    return WeightSelection(
+        tuple(best["weights"]), criterion, float(best["value"]), rounds, evaluate.solves, path
+    )
+
+
+_GOLDEN = (np.sqrt(5.0) - 1.0) / 2.0
+
+
+def _golden_section(
+    score: Callable[[tuple[float, ...]], float],
+    count: int,
+    progress: Callable[[int, float], None] | None,
+) -> int:
+    """Golden-section search of one log10 weight; returns the number of rounds."""
+    low, high = np.log10(LOWEST), np.log10(HIGHEST)
+    inner = [high - _GOLDEN * (high - low), low + _GOLDEN * (high - low)]
+    values = [score((10.0 ** inner[0],)), score((10.0 ** inner[1],))]
+    rounds = 0
+    while high - low > DECADES_TOLERANCE:
+        rounds += 1
+        if values[0] <= values[1]:  # the minimum lies left of the right inner point
+            high = inner[1]
+            inner[1], values[1] = inner[0], values[0]
+            inner[0] = high - _GOLDEN * (high - low)
+            values[0] = score((10.0 ** inner[0],))
+        else:
+            low = inner[0]
+            inner[0], values[0] = inner[1], values[1]
+            inner[1] = low + _GOLDEN * (high - low)
+            values[1] = score((10.0 ** inner[1],))
+        if progress:
+            progress(rounds, min(values))
+    return rounds
+
+
+def _grid_search(
+    score: Callable[[tuple[float, ...]], float],
+    count: int,
+    progress: Callable[[int, float], None] | None,
+) -> int:
+    """Algorithm 3 over `count` log10 weights; returns the number of rounds."""
     low = np.full(count, np.log10(LOWEST))
     high = np.full(count, np.log10(HIGHEST))
-    best_weights: tuple[float, ...] = (LOWEST,) * count
     best_value = previous = np.inf
-    path: list[dict] = []
     rounds = 0
     for rounds in range(1, MAX_ROUNDS + 1):
         grids = [np.logspace(lo, hi, 4) for lo, hi in zip(low, high, strict=True)]
         candidates = list(itertools.product(*[g[1:3] for g in grids]))
-        values = [evaluate(tuple(float(v) for v in c)) for c in candidates]
-        for c, v in zip(candidates, values, strict=True):
-            path.append({"weights": [float(w) for w in c], "value": v})
+        values = [score(tuple(float(v) for v in c)) for c in candidates]
         k = int(np.argmin(values))
         current = values[k]
         chosen = candidates[k]
         improved = current <= previous
         if improved:
-            best_weights, best_value = tuple(float(w) for w in chosen), current
+            best_value = current
         if progress:
             progress(rounds, best_value)
         if improved:
@@ -264,6 +338,4 @@ def select_weights(
             index = 1 + list(grids[j][1:3]).index(chosen[j])
             low[j] = np.log10(grids[j][index - 1])
             high[j] = np.log10(grids[j][index + 1])
-    return WeightSelection(
-        best_weights, criterion, float(best_value), rounds, evaluate.solves, path
-    )
+    return rounds

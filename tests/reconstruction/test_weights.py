@@ -59,3 +59,30 @@ def test_an_unknown_demosaic_is_named_in_the_error() -> None:
         parse_weights("auto:dmc-ari", 1)
     with pytest.raises(DataError, match=r"unknown weight criterion 'dmc-ari'.*dmc-menon"):
         select_weights([textured_problem()], criterion="dmc-ari")
+
+
+def smooth_nonneg_problem() -> Problem:
+    """The textured patch, non-negative, with spectral smoothness: an exact optimum exists."""
+    problem = textured_problem()
+    return Problem(problem.formation, problem.raw, problem.terms, (1.0,), True, smoothness=1e-3)
+
+
+def test_exact_selection_finds_the_criterion_minimum_of_converged_solves() -> None:
+    """With ``exact=True`` the DMC scores exact optima, so the weight chosen is the one whose
+    tightly converged ADMM solve (ε_rel 1e-9) scores best: it beats the weights 10 % above
+    and below it on such solves, and golden section needs fewer solves than Algorithm 3."""
+    problem = smooth_nonneg_problem()
+    selection = select_weights([problem], criterion="dmc", exact=True)
+    loose = select_weights([problem], criterion="dmc")
+    green = green_bilinear(problem.raw, CFA)
+
+    def tight_score(weight: float) -> float:
+        latent = solve(problem.with_weights((weight,)), rtol=1e-9, max_iter=20000).latent
+        return float(np.mean(((latent @ problem.formation.colour_matrix.T)[..., 1] - green) ** 2))
+
+    chosen = selection.weights[0]
+    assert 1e-8 < chosen < 1.0
+    at = tight_score(chosen)
+    assert at == pytest.approx(selection.value, rel=1e-6)
+    assert at < tight_score(1.1 * chosen) and at < tight_score(chosen / 1.1)
+    assert selection.solves < loose.solves
