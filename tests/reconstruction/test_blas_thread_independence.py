@@ -108,6 +108,10 @@ def test_weight_selection_is_bit_identical_under_one_and_two_blas_threads() -> N
     one, two = (under_blas_threads(n, select_weights, [problem]) for n in (1, 2))
     assert one.weights == two.weights
     assert one.value == two.value
+    smooth = Problem(formation, raw, PRIORS["L2"], (1.0,), nonneg=True, smoothness=1e-3)
+    one, two = (under_blas_threads(n, select_weights, [smooth], exact=True) for n in (1, 2))
+    assert one.weights == two.weights and one.solves == two.solves
+    assert one.value == two.value
 
 
 def test_reconstruct_is_bit_identical_under_one_and_two_blas_threads() -> None:
