@@ -557,10 +557,11 @@ def _write_report(report, results, hdr, sensor, models, recons, evaluation) -> N
         "its bands, and the spectral dispersion model."
     )
     report.table(
-        ["variant", "time (s)", "weight", "patches", "Φ used", "flat", "median iterations"],
+        ["variant", "time (s)", "weight", "patches", "Φ used", "flat", "exact",
+         "median ADMM iterations"],
         [
             [name, f"{s['seconds']:.1f}", f"{s['weights'][0]:.2g}", str(s["patches"]),
-             str(s["phi_used"]), str(s["flat"]), f"{s['median_iterations']:.0f}"]
+             str(s["phi_used"]), str(s["flat"]), str(s["exact"]), f"{s['median_iterations']:.0f}"]
             for name, s in results["reconstruction"].items()
         ],
     )  # fmt: skip

@@ -115,6 +115,7 @@ class SolverOptions:
     cg_rtol: float = 1e-5
     step_px: float = 0.1
     exact: bool = False
+    direct: bool = False
     interpolation: str = "bilinear"
     smoothness: float = 0.0
 
@@ -240,6 +241,7 @@ def solve_patch(
         max_iter=solver.max_iter,
         cg_rtol=solver.cg_rtol,
         exact_nonneg=solver.exact,
+        direct=solver.direct,
     )
     report = solution.report
     cg = report.cg_iterations

@@ -278,7 +278,7 @@ def reconstruct(
     kernel: str = "gaussian",
     rtol: float | None = None,
     max_iter: int = 1000,
-    exact: bool = False,
+    exact: bool | None = None,
     patch_px: int = 48,
     pad_px: int | None = None,
     flat_threshold: float | None = 0.01,
@@ -355,13 +355,14 @@ def reconstruct(
         its optimum for every prior, and 1e-4 at σ = 0.
     max_iter : int
         ADMM iteration limit per patch.
-    exact : bool
-        With non-negativity and L2-type priors, finish every patch with a projected-Newton
-        active-set method: the exact optimum, at several times the solve time with Φ (7×
-        on the bench's texture crop). With the default σ the default solve is within 1e-4
-        of it already; at σ = 0 ADMM's residual test alone can stop 1–10 % above it at
-        small weights, but that optimum is the poorer image (spectral error 0.265 against
-        ADMM's 0.240 on that crop at the DMC's weight, which is chosen with ADMM solves).
+    exact : bool, optional
+        With non-negativity and L2-type priors, solve every patch exactly (projected-Newton
+        active-set method; :func:`~reconstruction.solvers.admm.solve`'s ``exact_nonneg``).
+        None (default): with spectral smoothness σ > 0, patches whose initial estimate has
+        few values at zero are solved exactly and directly (``direct``: no ADMM, faster
+        than ADMM's solve to within 1e-4), the others by ADMM; at σ = 0, ADMM. At σ = 0
+        the exact optimum is the poorer image (README, spectral smoothness), and reaching
+        it with Φ costs several times the ADMM solve.
     patch_px : int
         Patch size, px (even). Small patches suit the FFT preconditioner: across a patch
         the dispersion departs less from its mean translation.
@@ -421,6 +422,10 @@ def reconstruct(
         rtol = default_rtol(smoothness)
     if not (isinstance(rtol, (int, float)) and 0 < rtol < 1):
         raise DataError(f"rtol must be a number in (0, 1), got {rtol!r}")
+    # with σ > 0 the optimum is unique and the better image: patches with few values at
+    # zero reach it by projected Newton, faster than ADMM comes within 1e-4 of it
+    direct = exact is None and smoothness > 0 and nonneg and not l1_terms
+    exact = bool(exact)
     if exact and l1_terms:
         raise DataError(
             f"the exact finish (exact=True, --exact) applies to L2-type priors (L2, Lap2, "
@@ -490,6 +495,7 @@ def reconstruct(
         "nonneg": nonneg,
         "spectral_smoothness": smoothness,
         "exact": exact,
+        "direct": direct,
         "rtol": rtol,
         "reference": reference,
         "patch_px": patch_px,
@@ -582,6 +588,7 @@ def reconstruct(
         atol,
         max_iter,
         exact=exact,
+        direct=direct,
         interpolation=interpolation,
         smoothness=smoothness,
     )

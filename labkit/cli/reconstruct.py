@@ -159,10 +159,11 @@ def register(commands: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--exact",
         action="store_true",
-        help="with --nonneg and an L2-type prior, finish every patch with a projected-Newton "
-        "active-set solve: the exact optimum instead of ADMM's (with --spectral-smoothness 0 "
-        "ADMM stops 0.05–10 %% above it at small weights; with the default σ within 1e-4), "
-        "at several times the cost",
+        help="with --nonneg and an L2-type prior, solve every patch exactly (projected-Newton "
+        "active-set method) instead of by ADMM alone; with --spectral-smoothness 0 ADMM stops "
+        "0.05–10 %% above the optimum at small weights, at several times the cost. (With the "
+        "default σ, patches with few values at zero are solved exactly anyway, faster than "
+        "ADMM, and the rest by ADMM to within 1e-4.)",
     )
     parser.add_argument(
         "--patch-px",
@@ -352,7 +353,7 @@ def _prepare(args: argparse.Namespace) -> _Job:
         latent=latent,
         correction=correction,
         interpolation=interpolation,
-        exact=args.exact,
+        exact=True if args.exact else None,
         patch_px=patch_px,
         pad_px=pad_px,
         scheduler=scheduler,

@@ -88,6 +88,14 @@ the test passes and the last (up to) this many values lie within :data:`STALL_FA
 a flat valley of the objective (README, reproducible solves). Not at σ = 0, whose early
 stop is kept on purpose (:data:`DEFAULT_RTOL`), nor in solves with ``settle=False``."""
 STALL_FACTOR = 0.5
+DIRECT_MAX_ZEROS = 600
+"""Largest number of values at or below zero in the start for which a direct exact solve
+(``direct``, or ``exact_nonneg`` with spectral smoothness) skips ADMM: the projected-Newton
+rounds factorise a dense block over the values held at zero, which costs more than ADMM
+once they number in the thousands."""
+DIRECT_CG_RTOL = 1e-6
+"""CG tolerance of the projected-Newton rounds that replace ADMM for an exact solve with Φ
+and spectral smoothness (the KKT test, not this, decides when the optimum is reached)."""
 _BALANCE, _FACTOR = 10.0, 2.0
 
 
@@ -336,6 +344,7 @@ def solve(
     penalty: float | None = None,
     track_objective: bool = False,
     exact_nonneg: bool = False,
+    direct: bool = False,
     settle: bool = True,
 ) -> Solution:
     """Minimise `problem` by ADMM (or one quadratic solve when nothing needs splitting).
@@ -369,6 +378,11 @@ def solve(
         active-set method replaces ADMM (``report.iterations`` = 0); if it does not
         settle, and always with Φ, ADMM's result is finished by projected Newton, at
         several times the cost of the ADMM solve.
+    direct : bool
+        For a non-negative L2-type problem with Φ: try the exact optimum by projected Newton
+        straight from the start (the initial estimate), with no ADMM, when at most
+        :data:`DIRECT_MAX_ZEROS` of its values are ≤ 0; ADMM as usual otherwise, or if
+        the rounds do not settle. ``exact_nonneg`` does the same with σ > 0.
     settle : bool
         With spectral smoothness (σ > 0), stop only once the objective has also settled
         (:data:`STALL_WINDOW`). Off for solves that promise no optimum, such as weight
@@ -385,13 +399,29 @@ def solve(
     report = SolveReport()
     # the exact solve needs K itself (no ADMM penalty): without Φ it may replace ADMM
     exact = None
-    if exact_nonneg and problem.nonneg and not l1_splits:
+    if (exact_nonneg or direct) and problem.nonneg and not l1_splits:
         exact = _QuadraticStep(problem, [], cg_rtol, cg_max_iter)
-        if exact.exact:
+        if exact.exact and exact_nonneg:
             x_exact, report.polish = solve_periodic(problem, exact.solver)
-            if report.polish.status == "optimal":
-                report.converged, report.splits = True, ["nonneg"]
-                return _finish(problem, x_exact, report, exact)
+        elif not exact.exact and (problem.smoothness > 0 or direct):
+            # a unique optimum: projected Newton straight from the initial estimate (the
+            # same FFT matrix as K̃ here, priors being quadratic), no ADMM before it, unless
+            # so many values start at zero that its dense k × k blocks cost more than ADMM
+            start = (
+                x0
+                if x0 is not None
+                else exact.solver.solve(2.0 * problem.formation.translation_adjoint(problem.raw))
+            )
+            if int(np.count_nonzero(start <= 0)) <= DIRECT_MAX_ZEROS:
+                x_exact, report.polish = polish(
+                    problem, start, exact.apply, exact.solver, cg_rtol=DIRECT_CG_RTOL
+                )
+        if report.polish is not None and report.polish.status == "optimal":
+            report.converged, report.splits = True, ["nonneg"]
+            return _finish(problem, x_exact, report, exact)
+        report.polish = None
+        if not exact_nonneg:
+            exact = None  # ADMM's own result stands
     if x0 is not None:
         x = np.array(x0, dtype=np.float64)
     elif problem.nonneg or l1_splits:

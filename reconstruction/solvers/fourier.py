@@ -229,21 +229,25 @@ class FourierSolver:
 
         ``g[p, q, j]`` is K⁻¹ applied to a unit impulse at pixel (p, q), band j. K is
         periodic with the 2×2 mosaic period, so the column of any impulse at (r, c) is
-        ``g[r % 2, c % 2, j]`` rolled by (r − r % 2, c − c % 2).
+        ``g[r % 2, c % 2, j]`` rolled by (r − r % 2, c − c % 2). (A view of one array.)
         """
         rows, cols = self.shape
         n = self.channels
-        impulses = np.zeros((rows, cols, n, 4 * n))
-        for p in range(2):
-            for q in range(2):
-                for j in range(n):
-                    impulses[p, q, j, (2 * p + q) * n + j] = 1.0
-        spectrum = to_quadruples(scipy.fft.fft2(impulses, axes=(0, 1)))[self._kept]
-        spectrum = spectrum.reshape(-1, 4 * n, 4 * n)
-        out = self._inverse @ spectrum
+        # the impulses' spectra are known: exp(−2πi (k p / rows + l q / cols)) in band j
+        k = np.arange(rows)[:, None, None, None]
+        m = np.arange(cols)[None, :, None, None]
+        p = np.array([0, 0, 1, 1])[None, None, None, :]
+        q = np.array([0, 1, 0, 1])[None, None, None, :]
+        phase = np.exp(-2j * np.pi * (k * p / rows + m * q / cols))[:, :, 0, :]
+        phase = to_quadruples(phase)[self._kept]  # (H, 4 members, 4 impulse pixels)
+        inverse = self._inverse.reshape(-1, 4, n, 4, n)
+        out = np.einsum("hsitj,htp->hsipj", inverse, phase, optimize=True)
+        out = out.reshape(-1, 4 * n, 4 * n)
+        # one step of iterative refinement against the impulses' spectra E = phase ⊗ I
+        spectrum = np.einsum("htp,ij->htipj", phase, np.eye(n)).reshape(-1, 4 * n, 4 * n)
         out += self._inverse @ (spectrum - self._matrix @ out)
         columns = self._to_image(out.reshape(-1, 4, n, 4 * n))  # (rows, cols, n, 4n)
-        return np.moveaxis(columns, 3, 0).reshape(2, 2, n, rows, cols, n)
+        return np.moveaxis(columns.reshape(rows, cols, n, 2, 2, n), (3, 4, 5), (0, 1, 2))
 
     def solve(self, b: np.ndarray, *, refine: bool = True) -> np.ndarray:
         """x with K x = b; `b` and x are (rows, cols, n) real.
