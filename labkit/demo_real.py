@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -101,32 +102,20 @@ def run_real_demo(
     DataError
         A folder or file is missing, or a stage cannot trust its input.
     """
-    from labkit.data import real_colorchecker
-    from labkit.rig import load_rig
-
     out = Path(out)
-    data = Path(data) if data is not None else real_colorchecker()
-    inputs = _inputs(data)
-    rig_file = Path(rig_path) if rig_path else real_rig_path()
-    rig = load_rig(rig_file)
-    out.mkdir(parents=True, exist_ok=True)
     disable = None if progress is None else not progress
     stage = Stages(7, "demo --real", disable=disable)
-    session = stage("import", lambda: _import(inputs, rig, out, patterns))
-    hdr = stage("hdr", lambda: _hdr(out))
-    scene, images = _filtered(out)
-    sensor = stage("sensor map", lambda: _sensor_map(images, rig, out))
-    synthesis = stage("synthesize", lambda: _synthesize(images, sensor, scene, out))
-    models = stage("calibrate", lambda: _calibrate(images, synthesis, rig, out))
-    recons = stage("reconstruct", lambda: _reconstruct(synthesis, sensor, models, out, disable))
-    evaluation = stage("evaluate", lambda: _evaluate(inputs, synthesis, models, recons, out))
+    real = prepare_real_inputs(out, data=data, rig_path=rig_path, patterns=patterns, stage=stage)
+    hdr, sensor, models = real.hdr, real.sensor, real.models
+    recons = stage("reconstruct", lambda: _reconstruct(real, out, disable))
+    evaluation = stage("evaluate", lambda: _evaluate(real, recons, out))
     stage.close()
     results = {
-        "data": str(data),
-        "rig": str(rig_file),
-        "scene": scene,
+        "data": str(real.data),
+        "rig": str(real.rig),
+        "scene": real.scene,
         "seconds": stage.seconds,
-        "import": session,
+        "import": real.session,
         "hdr": hdr["summary"],
         "sensor_map": sensor["summary"],
         "calibration": models["summary"],
@@ -140,6 +129,119 @@ def run_real_demo(
     )
     _, page = report.write(out)
     return page
+
+
+@dataclass
+class RealInputs:
+    """Real captures carried up to reconstruction (the demo's stages 1–5), and what scores
+    a reconstruction of them.
+
+    Attributes
+    ----------
+    data, rig : Path
+        The capture folder and the rig YAML.
+    scene : str
+        The chart's scene name.
+    inputs : dict of str to Path
+        ``frames``, ``darks`` and ``labels`` (``labels.png``).
+    session, hdr : dict
+        Import and HDR summaries (``hdr["summary"]``: Table 4.1 per filter).
+    sensor : dict
+        ``sensitivity`` (:class:`calibration.ChannelSensitivity`), ``response`` (its
+        :meth:`~calibration.ChannelSensitivity.as_response`) and ``summary``.
+    synthesis : calibration.multispectral.Synthesis
+        The multispectral and synthetic raw images (Algorithm 13).
+    models : dict
+        ``spectral`` (``to_reference``) and ``colour`` dispersion models, and ``summary``.
+    labels : ndarray (rows, cols) int
+        Patch labels 1–24 (0: background).
+    """
+
+    data: Path
+    rig: Path
+    scene: str
+    inputs: dict[str, Path]
+    session: dict[str, Any]
+    hdr: dict[str, Any]
+    sensor: dict[str, Any]
+    synthesis: Synthesis
+    models: dict[str, Any]
+    labels: np.ndarray
+
+    def reconstruct_options(self) -> dict[str, Any]:
+        """The inputs of :func:`reconstruction.reconstruct` for the synthetic raw image:
+        ``cfa``, ``response`` (the sensor map), ``bands`` (its band centres, nm) and
+        ``dispersion`` (the spectral model)."""
+        response = self.sensor["response"]
+        return {
+            "cfa": self.synthesis.raw.cfa,
+            "response": response,
+            "bands": [float(w) for w in response.wavelengths],
+            "dispersion": self.models["spectral"],
+        }
+
+    def score(self, result: Any) -> dict[str, float]:
+        """A reconstruction's patch-centre MRAE and RMSE against the chart's ASD reflectances
+        (:func:`patch_spectral_errors`) and edge-strip RMSE R/G/B of its raw colour image
+        (§4.4.3, fractions of the raw mean, as ``labkit evaluate`` reports them)."""
+        from labkit.spectra import colorchecker_reflectances
+        from reconstruction import evaluate
+
+        patch = patch_spectral_errors(
+            result.spectral,
+            result.wavelengths_nm,
+            patch_centres(self.labels),
+            colorchecker_reflectances("measured"),
+        )
+        raw = self.synthesis.raw
+        evaluation = evaluate(raw.raw, {"x": result.raw_colour}, cfa=raw.cfa, labels=self.labels)
+        edge = evaluation.as_dict()["methods"]["x"]["residual_aberration"]["edge"]["rmse"]
+        return {
+            "mrae": patch["mrae"],
+            "rmse": patch["rmse"],
+            **{f"edge_rmse_{c}": float(edge[c]) for c in "RGB"},
+        }
+
+
+def prepare_real_inputs(
+    out: str | Path,
+    *,
+    data: str | Path | None = None,
+    rig_path: str | Path | None = None,
+    patterns: Sequence[str] | None = None,
+    stage: Stages | None = None,
+) -> RealInputs:
+    """Import, merge, map, synthesise and calibrate real captures into `out` (stages 1–5).
+
+    Parameters are those of :func:`run_real_demo`; `stage` times each step (default: a
+    timer without a progress bar).
+
+    Raises
+    ------
+    DataError
+        A folder or file is missing, or a stage cannot trust its input.
+    """
+    from labkit.data import real_colorchecker
+    from labkit.io.plane import read_labels
+    from labkit.rig import load_rig
+
+    out = Path(out)
+    data = Path(data) if data is not None else real_colorchecker()
+    inputs = _inputs(data)
+    rig_file = Path(rig_path) if rig_path else real_rig_path()
+    rig = load_rig(rig_file)
+    out.mkdir(parents=True, exist_ok=True)
+    stage = stage if stage is not None else Stages(5, "real inputs", disable=True)
+    session = stage("import", lambda: _import(inputs, rig, out, patterns))
+    hdr = stage("hdr", lambda: _hdr(out))
+    scene, images = _filtered(out)
+    sensor = stage("sensor map", lambda: _sensor_map(images, rig, out))
+    synthesis = stage("synthesize", lambda: _synthesize(images, sensor, scene, out))
+    models = stage("calibrate", lambda: _calibrate(images, synthesis, rig, out))
+    labels = read_labels(inputs["labels"], synthesis.raw.raw.shape, what="label image")
+    return RealInputs(
+        data, rig_file, scene, inputs, session, hdr, sensor, synthesis, models, labels
+    )
 
 
 def _inputs(data: Path) -> dict[str, Path]:
@@ -290,29 +392,17 @@ def _calibrate(images: list, synthesis: Synthesis, rig, out: Path) -> dict[str, 
     return {"spectral": spectral.model, "colour": colour.model, "summary": summary}
 
 
-def _reconstruct(
-    synthesis: Synthesis,
-    sensor: dict[str, Any],
-    models: dict[str, Any],
-    out: Path,
-    disable: bool | None,
-) -> dict[str, Any]:
-
-    raw = synthesis.raw
-    response = sensor["response"]
+def _reconstruct(real: RealInputs, out: Path, disable: bool | None) -> dict[str, Any]:
     results = {}
     for name, (slug, options) in VARIANTS.items():
         folder = out / "reconstruction" / slug
         result, summary = reconstruct_and_save(
-            raw.raw,
+            real.synthesis.raw.raw,
             folder,
             name=f"({name})",
             command="labkit demo --real",
             disable_progress=disable,
-            cfa=raw.cfa,
-            response=response,
-            bands=[float(w) for w in response.wavelengths],
-            dispersion=models["spectral"],
+            **real.reconstruct_options(),
             **options,
         )
         summary["options"] = options
@@ -387,19 +477,12 @@ def patch_spectral_errors(
     }
 
 
-def _evaluate(
-    inputs: dict[str, Path],
-    synthesis: Synthesis,
-    models: dict[str, Any],
-    recons: dict[str, Any],
-    out: Path,
-) -> dict[str, Any]:
-    from labkit.io.plane import read_labels
+def _evaluate(real: RealInputs, recons: dict[str, Any], out: Path) -> dict[str, Any]:
     from labkit.spectra import colorchecker_reflectances
     from reconstruction import baseline_images, evaluate
 
+    synthesis, models, labels = real.synthesis, real.models, real.labels
     raw = synthesis.raw
-    labels = read_labels(inputs["labels"], raw.raw.shape, what="label image")
     centres = patch_centres(labels)
     reflectances = colorchecker_reflectances("measured")
     multispectral = synthesis.multispectral

@@ -12,6 +12,11 @@ no band-limited model can hold) in the reference geometry, with vignetting; per-
 registration (4.9) removes the unknown exposure scale. Colour errors compare the raw colour
 image with the dispersion-free render.
 
+The main variants (:data:`labkit.bench.real_frames.MAIN_VARIANTS`: the default problem,
+σ = 0, the §6.3 reference with and without σ, no non-negativity, VTV with cubic Φ) run on
+the simulated ColorChecker and on the real ColorChecker frames of the thesis' lab
+(:mod:`labkit.bench.real_frames`), tabulated and plotted side by side.
+
 Besides the target case: solver knobs (prior, band count, tolerance, patch size, with and
 without Φ) on one small textured image, plotted as time against error; an 80 %-flat scene
 with and without adaptive skipping; and the target case's settings on textured images of
@@ -30,6 +35,7 @@ import numpy as np
 
 from labkit.bench.harness import Measurement, Plot, Table, fit_exponent, peak_rss_mib
 from labkit.bench.plots import plot_scaling, plot_time_vs_error
+from labkit.bench.real_frames import MAIN_VARIANTS, comparison_table, real_measurements
 from labkit.rig import load_rig
 
 TARGET_S = 10.0
@@ -49,6 +55,7 @@ SCALING_EXPONENT_MAX = 1.2
 SHORT_S = 30.0
 """A scaling size whose first run is shorter than this (s) is repeated (median)."""
 TIME_ERROR_PNG = "reconstruct_time_vs_error.png"
+REAL_TIME_ERROR_PNG = "reconstruct_real_vs_simulated.png"
 SCALING_PNG = "reconstruct_scaling.png"
 
 
@@ -308,7 +315,7 @@ def bench_reconstruct(
     main_case = simulated_case(rig_path, SHAPE, "colorchecker")
     bands7 = _bands(main_case, 7)
     main_options = {"bands": bands7, "dispersion": main_case["model"], "prior": "L2"}
-    # the default spectral smoothness σ = SUGGESTED_SMOOTHNESS, and the thesis' σ = 0
+    # the default problem, then the main variants on this image and on the real frames
     times, result = [], None
     for _ in range(max(1, repeats)):
         result, seconds = _run(main_case, **main_options)
@@ -325,40 +332,24 @@ def bench_reconstruct(
         )
     )
     weights = f"fixed:{result.log['weights']['values'][0]:.6g}"
-    for label, extra in (
-        ("σ = 0 (thesis)", {"spectral_smoothness": 0.0}),
-        ("§6.3 mean-colour reference", {"reference": "mean-colour"}),
-    ):
-        variant, seconds = _run(main_case, **main_options, **extra)
-        results.append(
+    results[-1].extra["variant"] = MAIN_VARIANTS[0][0]
+    simulated_main = [results[-1]]
+    for label, extra in MAIN_VARIANTS[1:]:
+        variant, seconds = _run(main_case, **{**main_options, **extra})
+        simulated_main.append(
             _measurement(
-                f"344×408 ColorChecker, 7 bands, L2, nonneg, Φ, auto:dmc, {label}",
+                f"344×408 ColorChecker, 7 bands, {label}",
                 seconds,
                 [seconds],
                 None,
                 main_case,
                 variant,
-                {"image": "408×344", "bands": 7},
+                {"image": "408×344", "bands": 7, "variant": label},
             )
         )
-    edge_options = {
-        **main_options,
-        "prior": "VTV",
-        "interpolation": "cubic",
-        "spectral_smoothness": 0.0,
-    }
-    edge_result, seconds = _run(main_case, weights="auto:dmc-menon", **edge_options)
-    results.append(
-        _measurement(
-            "344×408 ColorChecker, 7 bands, VTV, nonneg, cubic Φ, auto:dmc-menon, σ = 0",
-            seconds,
-            [seconds],
-            None,
-            main_case,
-            edge_result,
-            {"image": "408×344", "bands": 7},
-        )
-    )
+    results += simulated_main[1:]
+    real_main, real_baselines = real_measurements()
+    results += real_main
 
     variant_case = simulated_case(rig_path, VARIANT_SHAPE, "texture")
     variants = [
@@ -469,6 +460,14 @@ def bench_reconstruct(
             for method, image in baselines.items()
         )
         + ".",
+        "Residual aberration of the baselines on the real frames (the synthetic raw image, "
+        "fractions of the raw mean): "
+        + "; ".join(
+            f"{method} " + "/".join(f"{v:.4f}" for v in values)
+            for method, values in real_baselines.items()
+        )
+        + ".",
+        comparison_table(real_main, simulated_main),
         "Peak memory: the largest resident set so far of this process or a finished child; "
         "for the full-size case and the scaling sizes, that of the fresh process the "
         "reconstruction ran in (VmHWM), the simulation left out.",
@@ -489,6 +488,23 @@ def bench_reconstruct(
             error_label="spectral RMSE / mean truth",
         )
         notes.append(Plot("Reconstruction: time against spectral error", TIME_ERROR_PNG))
+        plot_time_vs_error(
+            {
+                "real ColorChecker: patch-centre MRAE (ASD)": [
+                    (m.seconds, m.extra["mrae"], m.extra["variant"]) for m in real_main
+                ],
+                "simulated ColorChecker: MRAE per pixel": [
+                    (m.seconds, m.extra["spectral_mrae"], m.extra["variant"])
+                    for m in simulated_main
+                ],
+            },
+            out / REAL_TIME_ERROR_PNG,
+            title="labkit reconstruct: the main variants on real and simulated data",
+            error_label="MRAE",
+        )
+        notes.append(
+            Plot("Main variants: time against MRAE, real and simulated", REAL_TIME_ERROR_PNG)
+        )
         pixels = [m.extra["pixels"] for m in per_size]
         plot_scaling(
             pixels,
