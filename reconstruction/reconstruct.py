@@ -433,9 +433,10 @@ def reconstruct(
             "L2-type prior"
         )
     criterion, fixed = parse_weights(weights, len(terms))
-    # with σ > 0 the patch solves come within 1e-4 of the optimum, which the selection then
-    # scores exactly (reconstruction.weights)
-    exact_weights = smoothness > 0 and not l1_terms
+    # with σ > 0 the patch solves reach the optimum (or within 1e-4 of it), which the
+    # selection then scores exactly (reconstruction.weights); not the MDC, whose ideal
+    # point needs solves at w = ε, where only the ridge fixes the exact optimum
+    exact_weights = smoothness > 0 and not l1_terms and criterion != "mdc"
     if criterion == "msec" and truth is None:
         raise DataError("weights='auto:msec' needs the true spectral image (truth=...)")
     if reference is not None and reference not in REFERENCES:

@@ -41,7 +41,8 @@ search minimises with one solve per round instead of Algorithm 3's two. At σ = 
 problem's optimum is not the image ADMM's early stop returns, and the criterion scored on
 either (the optimum, or the early stop at the reconstruction's own tolerance) drifts to
 tiny weights (the DMC's failure mode, §3.6), so the thesis' loose search stays there
-(figures in the README, weight selection).
+(figures in the README, weight selection). So it does for the MDC, whose ideal point needs
+solves at w = ε, whose exact optimum only the ridge fixes.
 """
 
 from __future__ import annotations
@@ -269,11 +270,8 @@ def select_weights(
 
     # golden section needs a criterion free of solver noise, which exact solves give
     search = _golden_section if exact and count == 1 else _grid_search
-    rounds = search(score, count, progress)
-    best = min(path, key=lambda entry: entry["value"])
-    return WeightSelection(
-        tuple(best["weights"]), criterion, float(best["value"]), rounds, evaluate.solves, path
-    )
+    rounds, weights, value = search(score, count, progress)
+    return WeightSelection(weights, criterion, value, rounds, evaluate.solves, path)
 
 
 _GOLDEN = (np.sqrt(5.0) - 1.0) / 2.0
@@ -283,8 +281,8 @@ def _golden_section(
     score: Callable[[tuple[float, ...]], float],
     count: int,
     progress: Callable[[int, float], None] | None,
-) -> int:
-    """Golden-section search of one log10 weight; returns the number of rounds."""
+) -> tuple[int, tuple[float, ...], float]:
+    """Golden-section search of one log10 weight: (rounds, best weights, best value)."""
     low, high = np.log10(LOWEST), np.log10(HIGHEST)
     inner = [high - _GOLDEN * (high - low), low + _GOLDEN * (high - low)]
     values = [score((10.0 ** inner[0],)), score((10.0 ** inner[1],))]
@@ -303,17 +301,19 @@ def _golden_section(
             values[1] = score((10.0 ** inner[1],))
         if progress:
             progress(rounds, min(values))
-    return rounds
+    best = int(np.argmin(values))
+    return rounds, (float(10.0 ** inner[best]),), float(values[best])
 
 
 def _grid_search(
     score: Callable[[tuple[float, ...]], float],
     count: int,
     progress: Callable[[int, float], None] | None,
-) -> int:
-    """Algorithm 3 over `count` log10 weights; returns the number of rounds."""
+) -> tuple[int, tuple[float, ...], float]:
+    """Algorithm 3 over `count` log10 weights: (rounds, best weights, best value)."""
     low = np.full(count, np.log10(LOWEST))
     high = np.full(count, np.log10(HIGHEST))
+    best_weights: tuple[float, ...] = (LOWEST,) * count
     best_value = previous = np.inf
     rounds = 0
     for rounds in range(1, MAX_ROUNDS + 1):
@@ -325,7 +325,7 @@ def _grid_search(
         chosen = candidates[k]
         improved = current <= previous
         if improved:
-            best_value = current
+            best_weights, best_value = tuple(float(w) for w in chosen), current
         if progress:
             progress(rounds, best_value)
         if improved:
@@ -338,4 +338,4 @@ def _grid_search(
             index = 1 + list(grids[j][1:3]).index(chosen[j])
             low[j] = np.log10(grids[j][index - 1])
             high[j] = np.log10(grids[j][index + 1])
-    return rounds
+    return rounds, best_weights, float(best_value)
