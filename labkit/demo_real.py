@@ -30,6 +30,7 @@ from __future__ import annotations
 import json
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -180,6 +181,11 @@ class RealInputs:
             "dispersion": self.models["spectral"],
         }
 
+    @cached_property
+    def centres(self) -> list[np.ndarray]:
+        """Masks of the 24 patch centres (:func:`patch_centres` of :attr:`labels`)."""
+        return patch_centres(self.labels)
+
     def score(self, result: Any) -> dict[str, float]:
         """A reconstruction's patch-centre MRAE and RMSE against the chart's ASD reflectances
         (:func:`patch_spectral_errors`) and edge-strip RMSE R/G/B of its raw colour image
@@ -190,7 +196,7 @@ class RealInputs:
         patch = patch_spectral_errors(
             result.spectral,
             result.wavelengths_nm,
-            patch_centres(self.labels),
+            self.centres,
             colorchecker_reflectances("measured"),
         )
         raw = self.synthesis.raw
@@ -483,7 +489,7 @@ def _evaluate(real: RealInputs, recons: dict[str, Any], out: Path) -> dict[str, 
 
     synthesis, models, labels = real.synthesis, real.models, real.labels
     raw = synthesis.raw
-    centres = patch_centres(labels)
+    centres = real.centres
     reflectances = colorchecker_reflectances("measured")
     multispectral = synthesis.multispectral
     patch = {

@@ -130,16 +130,17 @@ class _Evaluator:
         # RMSE 0.091 against 0.363); L1 without σ 3.8e-4 instead of 5.4e-4 (0.101 against
         # 0.105). L2 priors keep the warm start: with it the DMC picks 4.7e-4 for L2, with
         # their own starts 2.5e-5 and a worse image (spectral RMSE 0.100 against 0.095).
-        self.own_starts = any(t.norm == 1 for t in self.problems[0].terms)
-        # an exact solve's result does not depend on its start
-        self.exact = bool(solve_options.get("exact_nonneg"))
+        # (an exact solve's result does not depend on its start)
+        self.own_starts = bool(solve_options.get("exact_nonneg")) or any(
+            t.norm == 1 for t in self.problems[0].terms
+        )
 
     def solutions(self, weights: tuple[float, ...]) -> list[np.ndarray]:
         if weights not in self._cache:
-            start = None if self.own_starts or self.exact else self._nearest(weights)
+            start = None if self.own_starts else self._nearest(weights)
             out = []
             for i, p in enumerate(self.problems):
-                if self.own_starts or self.exact:
+                if self.own_starts:
                     x0 = None  # solve()'s default: initial_estimate at these weights
                 elif start is None:
                     # the first weight starts from zeros (Algorithm 3): from solve()'s

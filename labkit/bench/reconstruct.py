@@ -328,11 +328,10 @@ def bench_reconstruct(
             TARGET_S,
             main_case,
             result,
-            {"image": "408×344", "bands": 7},
+            {"image": "408×344", "bands": 7, "variant": MAIN_VARIANTS[0][0]},
         )
     )
     weights = f"fixed:{result.log['weights']['values'][0]:.6g}"
-    results[-1].extra["variant"] = MAIN_VARIANTS[0][0]
     simulated_main = [results[-1]]
     for label, extra in MAIN_VARIANTS[1:]:
         variant, seconds = _run(main_case, **{**main_options, **extra})

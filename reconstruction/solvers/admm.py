@@ -308,7 +308,7 @@ def absolute_tolerance(raw: np.ndarray, rtol: float, q_max: float = 1.0) -> floa
 
 
 @fixed_blas_threads
-def initial_estimate(problem: Problem) -> np.ndarray:
+def initial_estimate(problem: Problem, *, solver: FourierSolver | None = None) -> np.ndarray:
     """A start for ADMM: one FFT solve with Φ as mean translations, priors made quadratic.
 
     ``(2ÃᵀÃ + Σ_j 2w_j D_jᵀD_j + 2εI) x = 2Ãᵀy`` where Ã is A with each Φ sample replaced
@@ -317,16 +317,20 @@ def initial_estimate(problem: Problem) -> np.ndarray:
     would amplify the mismatch. Clipped at zero for a non-negative problem. ADMM
     starts here unless given x0 (the thesis starts from zeros), which saves iterations of
     ADMM and of each CG solve (README).
+
+    `solver` is an FFT solver of that matrix to use instead of building one: for L2-type
+    priors, the split-free quadratic step's (:func:`quadratic_system`).
     """
     formation = problem.formation
-    quadratic = [(2.0 * w, t.quadratic()) for w, t, _ in problem.penalties if w > 0]
-    solver = FourierSolver(
-        formation.range_shape,
-        formation.cfa,
-        formation.fourier_colour(),
-        terms=quadratic,
-        identity=2.0 * problem.ridge,
-    )
+    if solver is None:
+        quadratic = [(2.0 * w, t.quadratic()) for w, t, _ in problem.penalties if w > 0]
+        solver = FourierSolver(
+            formation.range_shape,
+            formation.cfa,
+            formation.fourier_colour(),
+            terms=quadratic,
+            identity=2.0 * problem.ridge,
+        )
     x = solver.solve(2.0 * formation.translation_adjoint(problem.raw))
     return np.maximum(x, 0.0) if problem.nonneg else x
 
@@ -399,19 +403,16 @@ def solve(
     report = SolveReport()
     # the exact solve needs K itself (no ADMM penalty): without Φ it may replace ADMM
     exact = None
+    start = None  # the initial estimate, once the direct attempt has made it
     if (exact_nonneg or direct) and problem.nonneg and not l1_splits:
         exact = _QuadraticStep(problem, [], cg_rtol, cg_max_iter)
         if exact.exact and exact_nonneg:
             x_exact, report.polish = solve_periodic(problem, exact.solver)
         elif not exact.exact and (problem.smoothness > 0 or direct):
-            # a unique optimum: projected Newton straight from the initial estimate (the
-            # same FFT matrix as K̃ here, priors being quadratic), no ADMM before it, unless
-            # so many values start at zero that its dense k × k blocks cost more than ADMM
-            start = (
-                x0
-                if x0 is not None
-                else exact.solver.solve(2.0 * problem.formation.translation_adjoint(problem.raw))
-            )
+            # a unique optimum: projected Newton straight from the initial estimate (whose
+            # matrix K̃ is here, priors being quadratic), no ADMM before it, unless so many
+            # values start at zero that its dense k × k blocks cost more than ADMM
+            start = x0 if x0 is not None else initial_estimate(problem, solver=exact.solver)
             if int(np.count_nonzero(start <= 0)) <= DIRECT_MAX_ZEROS:
                 x_exact, report.polish = polish(
                     problem, start, exact.apply, exact.solver, cg_rtol=DIRECT_CG_RTOL
@@ -424,6 +425,8 @@ def solve(
             exact = None  # ADMM's own result stands
     if x0 is not None:
         x = np.array(x0, dtype=np.float64)
+    elif start is not None:
+        x = start
     elif problem.nonneg or l1_splits:
         x = initial_estimate(problem)
     else:

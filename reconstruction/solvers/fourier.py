@@ -234,11 +234,10 @@ class FourierSolver:
         rows, cols = self.shape
         n = self.channels
         # the impulses' spectra are known: exp(−2πi (k p / rows + l q / cols)) in band j
-        k = np.arange(rows)[:, None, None, None]
-        m = np.arange(cols)[None, :, None, None]
-        p = np.array([0, 0, 1, 1])[None, None, None, :]
-        q = np.array([0, 1, 0, 1])[None, None, None, :]
-        phase = np.exp(-2j * np.pi * (k * p / rows + m * q / cols))[:, :, 0, :]
+        k = np.arange(rows)[:, None, None]
+        m = np.arange(cols)[None, :, None]
+        p, q = np.array([0, 0, 1, 1]), np.array([0, 1, 0, 1])  # impulse pixel 2p + q
+        phase = np.exp(-2j * np.pi * (k * p / rows + m * q / cols))  # (rows, cols, 4)
         phase = to_quadruples(phase)[self._kept]  # (H, 4 members, 4 impulse pixels)
         inverse = self._inverse.reshape(-1, 4, n, 4, n)
         out = np.einsum("hsitj,htp->hsipj", inverse, phase, optimize=True)
