@@ -5,7 +5,9 @@ Criteria, each evaluated on the solution I* for a weight tuple:
 * ``"mdc"`` — the normalised minimum-distance criterion (3.22): squared distance of
   (‖A I* − y‖², S_1(I*), …) from the ideal point, each coordinate divided by its range.
   The ideal point and ranges come from solves with all weights at machine epsilon and
-  with one or all at 10¹⁰, as the thesis prescribes.
+  with one or all at 10¹⁰, as the thesis prescribes. A range smaller than the selection
+  solves' accuracy, (rtol·‖y‖)² for the misfit, counts as that accuracy: on a flat image
+  every weight fits the data, and the solves' noise must not pick the weight.
 * ``"msec"`` — mean squared error against a known latent image (3.23; simulation only).
 * ``"dmc"`` — the demosaicing criterion (3.24): mean squared difference between the
   Green channel of the solution, ``(Ω B I*)_G``, and the bilinear demosaic of the raw
@@ -169,7 +171,7 @@ class _Evaluator:
             total += [p.data_misfit(x), *p.prior_values(x)]
         return total
 
-    def prepare_mdc(self, count: int) -> None:
+    def prepare_mdc(self, count: int, rtol: float) -> None:
         low = (LOWEST,) * count
         ideal = [self.coordinates(low)[0]]
         for j in range(count):
@@ -180,7 +182,14 @@ class _Evaluator:
         ranges[0] = self.coordinates((HIGHEST,) * count)[0] - ideal[0]
         ranges[1:] = self.coordinates(low)[1:] - ideal[1:]
         self.ideal = ideal
-        self.ranges = np.where(np.abs(ranges) > 0, np.abs(ranges), 1.0)
+        # on a flat image every weight fits the data: the misfit's range is then the loose
+        # solves' own error, and dividing by it lets that noise pick the weight (a striped
+        # image at w = ε). Differences below the solves' accuracy, (rtol·‖y‖)², do not count.
+        data = sum(float(np.sum(np.square(p.raw, dtype=np.float64))) for p in self.problems)
+        floors = np.zeros(count + 1)
+        floors[0] = rtol**2 * data
+        ranges = np.maximum(np.abs(ranges), floors)
+        self.ranges = np.where(ranges > 0, ranges, 1.0)
 
     def __call__(self, weights: tuple[float, ...]) -> float:
         if self.criterion == "mdc":
@@ -261,7 +270,7 @@ def select_weights(
         {"exact_nonneg": True} if exact else {"rtol": rtol, "max_iter": max_iter, "settle": False},
     )
     if criterion == "mdc":
-        evaluate.prepare_mdc(count)
+        evaluate.prepare_mdc(count, rtol)
     path: list[dict] = []
 
     def score(weights: tuple[float, ...]) -> float:

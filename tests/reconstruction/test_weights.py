@@ -4,15 +4,16 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from _problems import blobs, normalised_colour
+from _problems import RESPONSE, blobs, normalised_colour
 
 from calibration.multispectral import green_bilinear
 from labkit.errors import DataError
+from labkit.spectra import camera_response
 from reconstruction.baselines import baseline
 from reconstruction.image_formation import ImageFormation
 from reconstruction.prior_terms import PRIORS
 from reconstruction.problem import Problem
-from reconstruction.reconstruct import parse_weights
+from reconstruction.reconstruct import parse_weights, reconstruct
 from reconstruction.solvers.admm import solve
 from reconstruction.weights import select_weights
 
@@ -86,3 +87,20 @@ def test_exact_selection_finds_the_criterion_minimum_of_converged_solves() -> No
     assert at == pytest.approx(selection.value, rel=1e-6)
     assert at < tight_score(1.1 * chosen) and at < tight_score(chosen / 1.1)
     assert selection.solves < loose.solves
+
+
+@pytest.mark.parametrize("level", [3.0, 65535.0])
+def test_mdc_on_a_flat_image_returns_it_flat(level: float) -> None:
+    """A flat image fits the data at every weight, so the MDC's misfit range is only the
+    loose solves' error; that noise must not pick w = ε, where the data leave the bands
+    free and the reconstruction comes back striped (it did: 32398–114950 for 65535)."""
+    result = reconstruct(
+        np.full((32, 32), level),
+        cfa=CFA,
+        response=camera_response(RESPONSE),
+        weights="auto:mdc",
+        patch_px=32,
+        pad_px=8,
+    )
+    assert result.log["weights"]["values"][0] > 1e-6
+    np.testing.assert_allclose(result.raw_colour, level, rtol=1e-3)
