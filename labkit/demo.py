@@ -31,7 +31,7 @@ import numpy as np
 import yaml
 from tqdm import tqdm
 
-from labkit.io import display_on_one_scale, spectral_preview, write_png, write_text_atomic
+from labkit.io import display_on_one_scale, write_png, write_text_atomic
 from labkit.io.tiff import json_default
 from labkit.plots import (
     plot_channel_errors,
@@ -293,12 +293,12 @@ def reconstruct_and_save(
     disable_progress: bool | None = False,
     **options: Any,
 ) -> tuple[Any, dict[str, Any]]:
-    """Reconstruct `raw` with a progress bar; write ``spectral.exr`` and ``preview.png``.
+    """Reconstruct `raw` with a progress bar and save it into `folder`
+    (:meth:`reconstruction.Reconstruction.save`).
 
     Returns the :class:`reconstruction.Reconstruction` and a summary for the report
     (seconds, bands, weight, patch counts, median ADMM iterations).
     """
-    from labkit.io import SpectralImage, write_spectral_exr
     from reconstruction import reconstruct
 
     bar = tqdm(desc=f"reconstruct {name}", unit="patch", leave=False, disable=disable_progress)
@@ -312,11 +312,7 @@ def reconstruct_and_save(
     result = reconstruct(raw, progress=progress, **options)
     seconds = time.perf_counter() - start
     bar.close()
-    write_spectral_exr(
-        folder / "spectral.exr",
-        SpectralImage(result.spectral, result.wavelengths_nm, {"command": command}),
-    )
-    write_png(folder / "preview.png", spectral_preview(result.spectral, result.wavelengths_nm))
+    result.save(folder, provenance={"command": command})
     patches = result.log["patches"]
     summary = {
         "seconds": seconds,

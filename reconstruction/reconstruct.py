@@ -15,6 +15,7 @@ import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy.optimize import nnls
@@ -97,6 +98,20 @@ class Reconstruction:
     raw_colour: np.ndarray
     latent: LatentSpace
     log: dict = field(default_factory=dict)
+
+    def save(
+        self,
+        out: str | Path,
+        *,
+        provenance: dict[str, Any] | None = None,
+        log: dict[str, Any] | None = None,
+    ) -> dict[str, Path]:
+        """Write ``spectral.exr``, ``raw_colour.exr``, ``preview.png`` and ``log.json``
+        into the folder `out`, atomically, the log last; returns the paths by name
+        (:func:`reconstruction.output.save_reconstruction`)."""
+        from reconstruction.output import save_reconstruction
+
+        return save_reconstruction(self, out, provenance=provenance, log=log)
 
 
 def parse_weights(
@@ -578,6 +593,7 @@ def reconstruct(
     else:
         chosen = fixed
         log["weights"] = {"values": list(chosen), "criterion": "fixed"}
+    log["weights"]["requested"] = weights if isinstance(weights, str) else list(chosen)
     log["weights"]["seconds"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()

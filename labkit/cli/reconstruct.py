@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import json
 import math
 import os
 import sys
@@ -536,26 +535,8 @@ class _ProgressBar:
 
 # -- writing ----------------------------------------------------------------------------
 def _write_outputs(args: argparse.Namespace, job: _Job, result: Any) -> dict[str, Path]:
-    """Write the outputs (atomically, the log last); returns their paths by name."""
-    import numpy as np
-
-    import labkit
-    from labkit.io import (
-        SpectralImage,
-        spectral_preview,
-        to_display,
-        to_plain,
-        write_png,
-        write_rgb_exr,
-        write_spectral_exr,
-        write_text_atomic,
-    )
-
-    out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
-    weights = result.log["weights"]
+    """Write the outputs through :meth:`Reconstruction.save`; returns their paths by name."""
     provenance = {
-        "software": f"labkit {labkit.__version__}",
         "command": "labkit reconstruct",
         "input": str(args.raw),
         "raw": {
@@ -569,62 +550,14 @@ def _write_outputs(args: argparse.Namespace, job: _Job, result: Any) -> dict[str
         "rig": None if args.rig is None else str(args.rig),
         "response": job.response_source,
         "dispersion_model": None if args.dispersion is None else str(args.dispersion),
-        "correction": args.correction,
-        "interpolation": args.interpolation,
-        "latent": result.latent.kind,
-        "prior": args.prior,
-        "nonneg": args.nonneg,
-        "weights": {
-            "requested": args.weights,
-            "criterion": weights["criterion"],
-            "values": weights["values"],
-        },
-        "reference": job.reference,
     }
-    paths: dict[str, Path] = {}
-    if result.wavelengths_nm is not None:
-        centres = np.asarray(result.wavelengths_nm, dtype=np.float64)
-        basis = {
-            "kernel": result.latent.kernel,
-            "spacing_nm": float(centres[1] - centres[0]),
-            "values": "spectrum at the band centres",
-            "reference_scale": [float(v) for v in result.latent.scale],
-        }
-        paths["spectral"] = out / "spectral.exr"
-        write_spectral_exr(
-            paths["spectral"],
-            SpectralImage(
-                result.spectral,
-                centres,
-                {**provenance, "basis": basis, "units": "raw units per nm"},
-            ),
-        )
-        preview = spectral_preview(result.spectral, centres)
-    else:
-        preview = to_display(np.maximum(result.raw_colour, 0), max_side=None)
-    paths["raw_colour"] = out / "raw_colour.exr"
-    write_rgb_exr(paths["raw_colour"], result.raw_colour, {**provenance, "units": "raw units"})
-    paths["preview"] = out / "preview.png"
-    write_png(paths["preview"], preview)
-    paths["log"] = out / "log.json"
     arguments = {k: v for k, v in vars(args).items() if k not in ("handler", "command")}
-    log = {
-        "command": "labkit reconstruct",
-        "arguments": arguments,
-        "software": provenance["software"],
-        "input": provenance["input"],
-        "rig": provenance["rig"],
-        "response": provenance["response"],
-        "dispersion_model": provenance["dispersion_model"],
-        "options": {
-            **{k: v for k, v in job.options.items() if k != "weights"},
-            "flat_threshold": FLAT_THRESHOLD,
-        },
-        "outputs": {name: path.name for name, path in paths.items()},
-        **result.log,
-    }
-    write_text_atomic(paths["log"], json.dumps(to_plain(log), indent=2, ensure_ascii=False) + "\n")
-    return paths
+    options = {k: v for k, v in job.options.items() if k != "weights"}
+    return result.save(
+        args.out,
+        provenance=provenance,
+        log={"arguments": arguments, "options": {**options, "flat_threshold": FLAT_THRESHOLD}},
+    )
 
 
 def _print_summary(

@@ -1,0 +1,121 @@
+"""Writing a reconstruction to a folder: the files ``labkit reconstruct`` and the demos write.
+
+``spectral.exr`` (spectral latent space: the spectrum at the band centres, raw units per
+nm, band centres and basis in the header), ``raw_colour.exr`` (the aberration-free image in
+raw camera colour, raw units), ``preview.png`` (sRGB; :func:`labkit.io.spectral_preview`
+for spectra, the raw colour otherwise) and ``log.json`` (the reconstruction's log with the
+caller's provenance). Every file is written atomically and the log last, so a folder with a
+log holds a complete set.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from reconstruction.reconstruct import Reconstruction
+
+OUTPUT_FILES = ("spectral.exr", "raw_colour.exr", "preview.png", "log.json")
+"""Names of the files :func:`save_reconstruction` writes (no spectral.exr for colour)."""
+
+
+def save_reconstruction(
+    result: Reconstruction,
+    out: str | Path,
+    *,
+    provenance: dict[str, Any] | None = None,
+    log: dict[str, Any] | None = None,
+) -> dict[str, Path]:
+    """Write `result` into the folder `out` (created if missing); returns the paths by name.
+
+    Parameters
+    ----------
+    result : Reconstruction
+    out : str or Path
+        Output folder; files of the same names are replaced.
+    provenance : dict, optional
+        Where the input came from (e.g. ``command``, ``input``, ``raw``, ``rig``,
+        ``response``, ``dispersion_model``), added to the options the result records in
+        both EXR headers and at the top of ``log.json``.
+    log : dict, optional
+        Further top-level entries of ``log.json`` (e.g. the command's arguments).
+
+    Returns
+    -------
+    dict of str to Path
+        ``spectral`` (spectral latent space only), ``raw_colour``, ``preview``, ``log``.
+    """
+    import labkit
+    from labkit.io import (
+        SpectralImage,
+        spectral_preview,
+        to_display,
+        to_plain,
+        write_png,
+        write_rgb_exr,
+        write_spectral_exr,
+        write_text_atomic,
+    )
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    header = {**recorded_options(result), **(provenance or {})}
+    header.setdefault("software", f"labkit {labkit.__version__}")
+    paths: dict[str, Path] = {}
+    if result.wavelengths_nm is not None:
+        centres = np.asarray(result.wavelengths_nm, dtype=np.float64)
+        basis = {
+            "kernel": result.latent.kernel,
+            "spacing_nm": float(centres[1] - centres[0]) if centres.size > 1 else None,
+            "values": "spectrum at the band centres",
+            "reference_scale": [float(v) for v in result.latent.scale],
+        }
+        paths["spectral"] = out / "spectral.exr"
+        write_spectral_exr(
+            paths["spectral"],
+            SpectralImage(
+                result.spectral, centres, {**header, "basis": basis, "units": "raw units per nm"}
+            ),
+        )
+        preview = spectral_preview(result.spectral, centres)
+    else:
+        preview = to_display(np.maximum(result.raw_colour, 0), max_side=None)
+    paths["raw_colour"] = out / "raw_colour.exr"
+    write_rgb_exr(paths["raw_colour"], result.raw_colour, {**header, "units": "raw units"})
+    paths["preview"] = out / "preview.png"
+    write_png(paths["preview"], preview)
+    paths["log"] = out / "log.json"
+    document = {
+        **header,
+        **(log or {}),
+        "outputs": {name: path.name for name, path in paths.items()},
+        **result.log,
+    }
+    text = json.dumps(to_plain(document), indent=2, ensure_ascii=False) + "\n"
+    write_text_atomic(paths["log"], text)
+    return paths
+
+
+def recorded_options(result: Reconstruction) -> dict[str, Any]:
+    """The problem's options as the result's log records them, for file headers."""
+    log = result.log
+    weights = log.get("weights", {})
+    dispersion = log.get("dispersion") or {}
+    return {
+        "latent": result.latent.kind,
+        "prior": log.get("prior"),
+        "nonneg": log.get("nonneg"),
+        "spectral_smoothness": log.get("spectral_smoothness"),
+        "weights": {
+            "requested": weights.get("requested"),
+            "criterion": weights.get("criterion"),
+            "values": weights.get("values"),
+        },
+        "reference": log.get("reference"),
+        "correction": dispersion.get("correction"),
+        "interpolation": dispersion.get("interpolation"),
+    }

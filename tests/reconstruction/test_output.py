@@ -1,0 +1,61 @@
+"""`Reconstruction.save`: the files it writes, their contents, and an atomic log."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from _problems import RESPONSE
+
+from labkit.io import read_spectral_exr
+from labkit.spectra import camera_response
+from reconstruction import reconstruct
+from reconstruction.output import OUTPUT_FILES
+
+CFA = "GBRG"
+
+
+def _raw(shape: tuple[int, int] = (32, 32)) -> np.ndarray:
+    yy, xx = np.mgrid[: shape[0], : shape[1]]
+    return 2.0 + np.sin(xx / 5.0) + 0.5 * np.cos(yy / 7.0)
+
+
+def test_spectral_result_round_trips(tmp_path: Path) -> None:
+    result = reconstruct(
+        _raw(), cfa=CFA, response=camera_response(RESPONSE), weights="fixed:0.01", patch_px=32
+    )
+    paths = result.save(tmp_path / "out", provenance={"command": "test", "input": "x.exr"})
+    assert [p.name for p in paths.values()] == list(OUTPUT_FILES)
+    cube = read_spectral_exr(paths["spectral"])
+    np.testing.assert_array_equal(cube.cube, result.spectral)
+    np.testing.assert_array_equal(cube.wavelengths_nm, result.wavelengths_nm)
+    assert cube.labkit["command"] == "test" and cube.labkit["input"] == "x.exr"
+    assert cube.labkit["weights"] == {"requested": "fixed:0.01", "criterion": "fixed",
+                                      "values": [0.01]}  # fmt: skip
+    log = json.loads(paths["log"].read_text())
+    assert log["command"] == "test" and log["outputs"]["preview"] == "preview.png"
+    assert log["patches"]["count"] == result.log["patches"]["count"]
+
+
+def test_colour_result_has_no_spectral_file(tmp_path: Path) -> None:
+    result = reconstruct(_raw(), cfa=CFA, latent="colour", weights="fixed:0.01", patch_px=32)
+    paths = result.save(tmp_path)
+    assert sorted(paths) == ["log", "preview", "raw_colour"]
+    assert not (tmp_path / "spectral.exr").exists()
+
+
+def test_a_failed_write_leaves_no_log(tmp_path: Path, monkeypatch) -> None:
+    """The log is written last: a folder without log.json is an incomplete one."""
+    import labkit.io
+
+    result = reconstruct(_raw(), cfa=CFA, latent="colour", weights="fixed:0.01", patch_px=32)
+
+    def broken(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(labkit.io, "write_png", broken)
+    with pytest.raises(OSError, match="disk full"):
+        result.save(tmp_path)
+    assert not (tmp_path / "log.json").exists()
