@@ -16,8 +16,9 @@ Contents
     Algorithm 3 with the MDC, MSE and demosaicing criteria (§3.6).
 :func:`reconstruct_patches`
     The patch-wise Dask driver that skips negligible dispersion and flat patches (§3.8.1).
-:func:`reconstruct`
-    The whole job: validation, normalisation, weights, patches, outputs and a log.
+:class:`ReconstructOptions`, :func:`reconstruct`, :meth:`Reconstruction.save`
+    The options, validated once; the whole job in four stages (prepare the problem,
+    choose weights, solve the patches, assemble); the outputs written to a folder.
 :func:`spectral_errors`, :func:`colour_errors`, :func:`registration_scale`, :func:`patch_weights`
     Evaluation metrics (§4.4.1–4.4.2): MRAE, RMSE, GOF, SSIM; per-band registration.
 :func:`residual_aberration`, :func:`patch_regions`, :func:`ideal_image`
@@ -40,6 +41,7 @@ from reconstruction.metrics import (
     registration_scale,
     spectral_errors,
 )
+from reconstruction.options import OptionError, ReconstructOptions
 from reconstruction.patches import PatchOptions, SolverOptions, reconstruct_patches
 from reconstruction.prior_terms import PRIORS, PriorTerm, prior_terms
 from reconstruction.problem import Problem
@@ -61,10 +63,12 @@ __all__ = [
     "Evaluation",
     "ImageFormation",
     "LatentSpace",
+    "OptionError",
     "PatchOptions",
     "PatchRegions",
     "PriorTerm",
     "Problem",
+    "ReconstructOptions",
     "Reconstruction",
     "ResidualAberration",
     "Score",

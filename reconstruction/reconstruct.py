@@ -1,10 +1,17 @@
 """`reconstruct`: a spectral (or colour) image from one Bayer raw image (thesis ch. 3).
 
-Steps: validate everything (before any heavy work) → normalise → optionally fit the §6.3
-reference spectrum → choose weights on representative patches (Algorithm 3, without
-dispersion) → solve every patch on Dask → (§3.9.2 variant: warp the latent image onto the
-reference geometry) → undo the normalisation → spectrum at the band centres, raw colour
-image and a log.
+The options are validated once, as a :class:`~reconstruction.options.ReconstructOptions`,
+before any work; the job then runs in four named stages:
+
+1. :func:`prepare_problem` — check the image against the options, normalise it, fit the
+   §6.3 reference spectrum;
+2. :func:`choose_weights` — fixed, or chosen on representative patches (§3.6, without
+   dispersion);
+3. :func:`solve_patches` — every patch on Dask (§3.8.1);
+4. :func:`assemble` — undo the normalisation, warp for the §3.9.2 variant, the spectrum at
+   the band centres, the raw colour image and the log.
+
+:meth:`Reconstruction.save` writes the result (:mod:`reconstruction.output`).
 """
 
 from __future__ import annotations
@@ -13,7 +20,7 @@ import math
 import time
 import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -23,12 +30,20 @@ from scipy.optimize import nnls
 from calibration.dispersion_model import DispersionModel, load_dispersion_model
 from calibration.warp import correct_channels, correct_spectral
 from labkit.blas_threads import fixed_blas_threads
-from labkit.cfa import channel_index, check_layout
+from labkit.cfa import channel_index
 from labkit.errors import DataError
-from labkit.spectra import Spectra
 from reconstruction.image_formation import LatentSpace, build_formation
 from reconstruction.operators import SpectralGradient
-from reconstruction.operators.dispersion import check_interpolation
+
+# re-exported: their home before the options object existed
+from reconstruction.options import (  # noqa: F401
+    CORRECTIONS,
+    LATENTS,
+    REFERENCES,
+    OptionError,
+    ReconstructOptions,
+    parse_weights,
+)
 from reconstruction.patches import (
     PatchOptions,
     SolverOptions,
@@ -37,10 +52,9 @@ from reconstruction.patches import (
     reconstruct_patches,
     texture,
 )
-from reconstruction.prior_terms import prior_terms
-from reconstruction.problem import SUGGESTED_SMOOTHNESS, Problem
-from reconstruction.solvers.admm import absolute_tolerance, default_rtol
-from reconstruction.weights import CRITERIA, select_weights
+from reconstruction.problem import Problem
+from reconstruction.solvers.admm import absolute_tolerance
+from reconstruction.weights import select_weights
 
 MIN_PAD_PX = 8
 """Smallest default patch overlap, px."""
@@ -48,15 +62,6 @@ MIN_PAD_PX = 8
 MAX_RAW_MAGNITUDE = 1e30
 """Largest |raw value| accepted (and smallest non-zero peak, as its inverse): the spectral
 and raw-colour outputs are float32 (largest finite 3.4e38, smallest normal 1.2e-38)."""
-
-CORRECTIONS = ("model", "warp")
-"""How a dispersion model is undone: Φ inside the problem (3.1), or warping after (§3.9.2)."""
-
-LATENTS = ("spectral", "colour")
-"""What is estimated: the spectral image (3.1), or the colour image directly (3.27)."""
-
-REFERENCES = ("mean-colour",)
-"""Reference spectra of the §6.3 variant (None: the plain problem)."""
 
 REFERENCE_SMOOTHING = 1e-2
 """Weight w of (6.1)'s spectral-gradient penalty, relative to ‖C‖² (normalised units)."""
@@ -112,37 +117,6 @@ class Reconstruction:
         from reconstruction.output import save_reconstruction
 
         return save_reconstruction(self, out, provenance=provenance, log=log)
-
-
-def parse_weights(
-    weights: str | Sequence[float], count: int
-) -> tuple[str, tuple[float, ...] | None]:
-    """``"auto:dmc"`` → ("dmc", None); ``"fixed:0.1,0.2"`` or a sequence → ("fixed", values)."""
-    if isinstance(weights, str):
-        kind, _, rest = weights.partition(":")
-        if kind == "auto":
-            if rest not in CRITERIA:
-                raise DataError(
-                    f"unknown weight criterion {rest!r} in {weights!r}; use auto:dmc, "
-                    "auto:dmc-malvar, auto:dmc-menon, auto:mdc or auto:msec"
-                )
-            return rest, None
-        if kind != "fixed":
-            raise DataError(
-                f"weights {weights!r}: use auto:dmc|auto:dmc-menon|auto:mdc|auto:msec or "
-                "fixed:W1[,W2]"
-            )
-        try:
-            values = tuple(float(v) for v in rest.split(","))
-        except ValueError:
-            raise DataError(f"weights {weights!r}: fixed weights must be numbers") from None
-    else:
-        values = tuple(float(v) for v in weights)
-    if len(values) != count:
-        raise DataError(f"the prior has {count} term(s) but {len(values)} weight(s) were given")
-    if any(not np.isfinite(v) or v < 0 for v in values):
-        raise DataError(f"weights must be finite and ≥ 0, got {values}")
-    return "fixed", values
 
 
 def check_raw(raw: np.ndarray, *, where: str = "the raw image") -> np.ndarray:
@@ -277,125 +251,30 @@ def representative_patches(raw: np.ndarray, size: int, count: int) -> list[tuple
 @fixed_blas_threads
 def reconstruct(
     raw: np.ndarray,
+    options: ReconstructOptions | None = None,
+    /,
     *,
-    cfa: str,
-    response: Spectra | None = None,
-    bands: Sequence[float] | None = None,
-    dispersion: DispersionModel | str | Path | None = None,
-    correction: str = "model",
-    interpolation: str = "bilinear",
-    prior: str = "L2",
-    nonneg: bool = True,
-    spectral_smoothness: float | None = None,
-    weights: str | Sequence[float] = "auto:dmc",
-    latent: str = "spectral",
-    reference: str | None = None,
-    kernel: str = "gaussian",
-    rtol: float | None = None,
-    max_iter: int = 1000,
-    exact: bool | None = None,
-    patch_px: int = 48,
-    pad_px: int | None = None,
-    flat_threshold: float | None = 0.01,
-    weight_patches: Sequence[tuple[int, int]] | int = 1,
-    weight_patch_px: int = 64,
     truth: np.ndarray | None = None,
-    scheduler: str | object | None = None,
     progress: Callable[[int, int], None] | None = None,
+    **keywords: Any,
 ) -> Reconstruction:
     """Reconstruct an aberration-free spectral image from one Bayer raw image (problem (3.1)).
+
+    The job runs in four stages: :func:`prepare_problem` (normalise, fit the §6.3
+    reference, check the image against the options), :func:`choose_weights` (on
+    representative patches, without dispersion), :func:`solve_patches` (every patch, on
+    Dask) and :func:`assemble` (undo the normalisation, warp for §3.9.2, the outputs).
 
     Parameters
     ----------
     raw : ndarray (rows, cols)
         Bayer mosaic (e.g. an HDR raw image), even size, finite; any linear units.
-    cfa : str
-        Bayer layout (RGGB, GRBG, GBRG, BGGR).
-    response : Spectra, optional
-        Camera response R, G, B over wavelength; required for ``latent="spectral"``.
-    bands : sequence of float, optional
-        Band centres, nm, equally spaced; default chosen from the response (§3.3.2).
-    dispersion : DispersionModel or path, optional
-        ``to_reference`` model of this camera and image size: spectral for
-        ``latent="spectral"``, colour-channel for ``latent="colour"``. None: no Φ.
-    correction : {"model", "warp"}
-        ``"model"``: Φ inside the problem (3.1)/(3.27). ``"warp"``: the §3.9.2 variant —
-        solve without Φ (sparser, faster, immune to model errors), then warp every latent
-        channel onto the reference geometry (bilinear; spectral channels at their band
-        centres); the model may then have either direction.
-    interpolation : {"bilinear", "cubic"}
-        Sampling weights of Φ (``correction="model"``): bilinear, as the thesis (§3.2.5),
-        or Keys' cubic convolution, which shifts without bilinear's blur and so without
-        the overshoot it provokes at edges (measured on the simulated ColorChecker, DMC
-        weights: green edge error 0.0265 → 0.0207, spectral RMSE 0.100 → 0.087), at
-        about 1.3× the run time (7.5–8.3 s against 6.0–6.3 s).
-    prior : str
-        A combination of Table 3.1 (``L1``, ``L2``, ``Lap1``, ``Lap2``, ``L1L1``,
-        ``L2L2``, ``L1SpatialLap2``, ``L1SpectralLap2``), or ``VTV``: vectorial total
-        variation ‖∇xy I‖₂,₁, which places edges at the same position in every band
-        (:mod:`reconstruction.prior_terms`).
-    nonneg : bool
-        Constrain the latent image to be non-negative.
-    spectral_smoothness : float, optional
-        σ of the spectral roughness term σ‖S I‖² (normalised units; beyond the thesis;
-        :class:`~reconstruction.operators.SpectralRoughness`): among the spectra the data
-        and the prior cannot tell apart, the solve picks the smoothest rather than the
-        smallest, without pulling a patch's mean colour. Default
-        :data:`~reconstruction.problem.SUGGESTED_SMOOTHNESS` (1e-3) for a spectral latent
-        image: lower spectral, colour and edge errors than σ = 0, weights the DMC
-        determines well, and an optimum the default solve reaches within 1e-4. 0 is the
-        thesis' problem, for narrow-band light (bandpass filters, lasers, LEDs), whose
-        spectra the term biases (measurements in :mod:`reconstruction.problem`). Spectral
-        latent only (default 0 for ``latent="colour"``).
-    weights : str or sequence of float
-        ``"auto:dmc"`` (default; the thesis' demosaicing criterion against bilinear
-        demosaicing), ``"auto:dmc-menon"`` / ``"auto:dmc-malvar"`` (the same against a
-        stronger demosaic: sharper weights for edge-preserving priors, e.g. VTV; not for
-        narrow-band light), ``"auto:mdc"``, ``"auto:msec"`` (needs `truth`), or fixed
-        weights (``"fixed:0.01"`` or a sequence), in normalised units
-        (:mod:`reconstruction.weights`).
-    latent : {"spectral", "colour"}
-        Problem (3.1), or direct colour estimation (3.27).
-    reference : {None, "mean-colour"}
-        ``"mean-colour"``: the §6.3 variant (reconstruct relative to a smooth spectrum
-        fitted to the image's mean colour).
-    kernel : {"gaussian", "sinc"}
-        Kernel of the spectral basis. A response tabulated at exactly the band centres (a
-        sensor map, :meth:`calibration.ChannelSensitivity.as_response`) is a discrete model
-        whatever the kernel (:class:`~reconstruction.image_formation.LatentSpace`).
-    rtol : float, optional
-        ADMM relative tolerance per patch; default
-        :func:`~reconstruction.solvers.admm.default_rtol`: 1e-5 when
-        ``spectral_smoothness`` > 0, which brings each patch's objective within 1e-4 of
-        its optimum for every prior, and 1e-4 at σ = 0.
-    max_iter : int
-        ADMM iteration limit per patch.
-    exact : bool, optional
-        With non-negativity and L2-type priors, solve every patch exactly (projected-Newton
-        active-set method; :func:`~reconstruction.solvers.admm.solve`'s ``exact_nonneg``).
-        None (default): with spectral smoothness σ > 0, patches whose initial estimate has
-        few values at zero are solved exactly and directly (``direct``: no ADMM, faster
-        than ADMM's solve to within 1e-4), the others by ADMM; at σ = 0, ADMM. At σ = 0
-        the exact optimum is the poorer image (README, spectral smoothness), and reaching
-        it with Φ costs several times the ADMM solve.
-    patch_px : int
-        Patch size, px (even). Small patches suit the FFT preconditioner: across a patch
-        the dispersion departs less from its mean translation.
-    pad_px : int, optional
-        Overlap on each side, px (even); default the smallest even value ≥ 8 and ≥ twice the
-        model's largest displacement.
-    flat_threshold : float or None
-        Relative texture above the image's noise below which a patch counts as flat
-        (None: never skip).
-    weight_patches : int or sequence of (row, col)
-        How many representative patches to select weights on (chosen by texture), or
-        their origins.
-    weight_patch_px : int
-        Size of those patches, px (even).
+    options : ReconstructOptions, optional
+        The problem and how to solve it; or give its fields as keywords (``cfa=…``,
+        ``response=…``, …; :class:`~reconstruction.options.ReconstructOptions` documents
+        each). Keywords given with `options` replace its fields.
     truth : ndarray (rows, cols, n), optional
-        True spectral image at the band centres (MSE criterion only; simulation).
-    scheduler : str or distributed.Client, optional
-        Dask scheduler (see :func:`~reconstruction.patches.reconstruct_patches`).
+        True spectral image at the band centres (``weights="auto:msec"`` only; simulation).
     progress : callable, optional
         ``progress(done, total)`` per patch.
 
@@ -405,68 +284,85 @@ def reconstruct(
 
     Raises
     ------
+    OptionError
+        An invalid option, before anything else is done.
     DataError
-        Bad input of any kind, before heavy work starts.
+        A raw image or option unusable for it, before heavy work starts.
     """
     started = time.perf_counter()
+    if options is None:
+        options = ReconstructOptions(**keywords)
+    elif keywords:
+        options = replace(options, **keywords)
+    job = prepare_problem(raw, options, truth=truth)
+    weights = choose_weights(job, truth=truth)
+    latent, records = solve_patches(job, weights, progress=progress)
+    result = assemble(job, latent, records)
+    result.log["seconds"] = time.perf_counter() - started
+    return result
+
+
+@dataclass(eq=False)
+class PreparedProblem:
+    """The problem of one image, normalised and checked (:func:`prepare_problem`).
+
+    Attributes
+    ----------
+    options : ReconstructOptions
+    raw : ndarray (rows, cols) float64
+        The raw image as given.
+    y : ndarray (rows, cols) float64
+        The raw image divided by `raw_scale`.
+    raw_scale, colour_gain : float
+        The normalisation: raw to O(1), colour matrices to a largest channel sum of 1.
+    space : LatentSpace
+        The latent space, with the §6.3 reference scale when asked for.
+    patches : PatchOptions
+        Patch size, overlap (resolved from the dispersion's reach), flatness threshold and
+        the image's noise level.
+    atol : float
+        ADMM's absolute tolerance (Algorithm 9 on the whole image).
+    log : dict
+        The log so far (JSON-ready).
+    """
+
+    options: ReconstructOptions
+    raw: np.ndarray
+    y: np.ndarray
+    raw_scale: float
+    colour_gain: float
+    space: LatentSpace
+    patches: PatchOptions
+    atol: float
+    log: dict
+
+    @property
+    def solve_model(self) -> DispersionModel | None:
+        """The dispersion model inside the problem (None for §3.9.2's warp afterwards)."""
+        return self.options.model if self.options.correction == "model" else None
+
+
+def prepare_problem(
+    raw: np.ndarray, options: ReconstructOptions, *, truth: np.ndarray | None = None
+) -> PreparedProblem:
+    """Stage 1: check `raw` against `options`, normalise it, fit the §6.3 reference.
+
+    Raises
+    ------
+    DataError
+        An unusable raw image, a dispersion model for another image size or a patch
+        overlap below its reach, or ``auto:msec`` without `truth`.
+    """
     raw = check_raw(raw)
-    cfa = check_layout(cfa)
-    if latent == "spectral":
-        if response is None:
-            raise DataError("spectral reconstruction needs the camera response (R, G, B)")
-        space = LatentSpace.spectral(response, bands, kernel=kernel)
-    elif latent == "colour":
-        if bands is not None:
-            raise DataError("direct colour estimation (latent='colour') takes no bands")
-        space = LatentSpace.colour()
-    else:
-        raise DataError(f"unknown latent space {latent!r}; use 'spectral' or 'colour'")
-    terms = prior_terms(prior, channels=space.channels)
-    if spectral_smoothness is None:
-        spectral_smoothness = SUGGESTED_SMOOTHNESS if space.kind == "spectral" else 0.0
-    smoothness = float(spectral_smoothness)
-    if not (np.isfinite(smoothness) and smoothness >= 0):
-        raise DataError(f"spectral_smoothness must be finite and ≥ 0, got {spectral_smoothness}")
-    if smoothness > 0 and space.kind != "spectral":
-        raise DataError(
-            "spectral_smoothness applies to spectral latent images (bands along λ); give 0 "
-            "for latent='colour'"
-        )
-    l1_terms = any(t.norm == 1 for t in terms)
-    if rtol is None:
-        rtol = default_rtol(smoothness)
-    if not (isinstance(rtol, (int, float)) and 0 < rtol < 1):
-        raise DataError(f"rtol must be a number in (0, 1), got {rtol!r}")
-    # with σ > 0 the optimum is unique and the better image: patches with few values at
-    # zero reach it by projected Newton, faster than ADMM comes within 1e-4 of it
-    direct = exact is None and smoothness > 0 and nonneg and not l1_terms
-    exact = bool(exact)
-    if exact and l1_terms:
-        raise DataError(
-            f"the exact finish (exact=True, --exact) applies to L2-type priors (L2, Lap2, "
-            f"L2L2); {prior} has L1 terms, which only ADMM solves: drop it or pick an "
-            "L2-type prior"
-        )
-    criterion, fixed = parse_weights(weights, len(terms))
-    # with σ > 0 the patch solves reach the optimum (or within 1e-4 of it), which the
-    # selection then scores exactly (reconstruction.weights); not the MDC, whose ideal
-    # point needs solves at w = ε, where only the ridge fixes the exact optimum
-    exact_weights = smoothness > 0 and not l1_terms and criterion != "mdc"
-    if criterion == "msec" and truth is None:
+    o = options
+    if o.criterion == "msec" and truth is None:
         raise DataError("weights='auto:msec' needs the true spectral image (truth=...)")
-    if reference is not None and reference not in REFERENCES:
-        raise DataError(f"unknown reference {reference!r}; use None or 'mean-colour' (§6.3)")
-    if correction not in CORRECTIONS:
-        raise DataError(
-            f"unknown correction {correction!r}; use 'model' (Φ in the problem) or 'warp' "
-            "(§3.9.2: warp after a dispersion-free solve)"
-        )
-    model = check_dispersion_model(dispersion, raw.shape, space.kind, correction=correction)
-    if correction == "warp" and model is None:
-        raise DataError("correction='warp' needs a dispersion model to warp with")
-    solve_model = model if correction == "model" else None
-    check_interpolation(interpolation)
+    o.check_image(raw.shape)
+    space = o.space
+    model = o.model
+    solve_model = model if o.correction == "model" else None
     reach = 0.0 if solve_model is None else max_dispersion(model, space, (0, 0), raw.shape)
+    pad_px = o.pad_px
     if pad_px is None:
         pad_px = max(MIN_PAD_PX, 2 * math.ceil(reach))
         pad_px += pad_px % 2
@@ -475,22 +371,22 @@ def reconstruct(
             f"the dispersion model shifts the image by up to {reach:.1f} px, more than half "
             f"the patch overlap pad_px={pad_px}; raise pad_px (or leave it to the default)"
         )
-    # normalisation: raw to O(1), colour matrices to a largest channel sum of 1
     raw_scale = float(np.mean(raw))
     if not raw_scale > 0:
         raw_scale = max(float(np.max(np.abs(raw))), 1.0)
     y = raw / raw_scale
     noise = noise_sigma(y)
-    options = PatchOptions(
-        patch_px=patch_px, pad_px=pad_px, flat_threshold=flat_threshold, noise_sigma=noise
+    patches = PatchOptions(
+        patch_px=o.patch_px, pad_px=pad_px, flat_threshold=o.flat_threshold, noise_sigma=noise
     )
     colour_gain = 1.0 / float(space.colour_matrix().sum(axis=1).max())
+    smoothness = o.smoothness
     notices = []
-    if reference == "mean-colour" or smoothness > 0:
+    if o.reference == "mean-colour" or smoothness > 0:
         # one fit of (6.1) serves both, on the colour matrix of spectra (before any scale)
-        colour_mean = mean_colour(y, cfa)
+        colour_mean = mean_colour(y, o.cfa)
         fit, misfit = smooth_mean_colour(colour_mean, colour_gain * space.colour_matrix())
-        if reference == "mean-colour":
+        if o.reference == "mean-colour":
             space = space.with_scale(reference_scale(fit))
         # a non-positive channel mean has no colour to judge
         if smoothness > 0 and np.all(colour_mean > 0) and misfit > NARROW_BAND_MISFIT:
@@ -500,45 +396,67 @@ def reconstruct(
                 f"term (σ = {smoothness:g}) biases such colours; give spectral_smoothness=0 "
                 "(--spectral-smoothness 0) for the thesis' problem"
             )
-            warnings.warn(notices[-1], NarrowBandWarning, stacklevel=2)
-    atol = absolute_tolerance(y, rtol)  # Algorithm 9 on the whole image
-
+            warnings.warn(notices[-1], NarrowBandWarning, stacklevel=4)
     log: dict = {
         "warnings": notices,
         "latent": space.kind,
         "bands_nm": None if space.centres_nm is None else [float(v) for v in space.centres_nm],
-        "prior": prior,
-        "nonneg": nonneg,
+        "prior": o.prior,
+        "nonneg": o.nonneg,
         "spectral_smoothness": smoothness,
-        "exact": exact,
-        "direct": direct,
-        "rtol": rtol,
-        "reference": reference,
-        "patch_px": patch_px,
+        "exact": bool(o.exact),
+        "direct": o.direct,
+        "rtol": o.tolerance,
+        "reference": o.reference,
+        "patch_px": o.patch_px,
         "pad_px": pad_px,
-        "flat_threshold": flat_threshold,
+        "flat_threshold": o.flat_threshold,
         "noise_sigma": noise * raw_scale,
         "normalisation": {"raw_scale": raw_scale, "colour_gain": colour_gain},
         "reference_scale": [float(v) for v in space.scale],
         "dispersion": None
         if model is None
         else {
-            "source": str(dispersion) if isinstance(dispersion, (str, Path)) else "in memory",
+            "source": o.dispersion_source,
             "variables": model.variables,
             "direction": model.direction,
-            "correction": correction,
-            "interpolation": interpolation if solve_model is not None else None,
+            "correction": o.correction,
+            "interpolation": o.interpolation if solve_model is not None else None,
             "provenance": model.to_dict().get("provenance", {}),
         },
     }
+    return PreparedProblem(
+        options=o,
+        raw=raw,
+        y=y,
+        raw_scale=raw_scale,
+        colour_gain=colour_gain,
+        space=space,
+        patches=patches,
+        atol=absolute_tolerance(y, o.tolerance),
+        log=log,
+    )
 
+
+def choose_weights(job: PreparedProblem, *, truth: np.ndarray | None = None) -> tuple[float, ...]:
+    """Stage 2: the prior weights, fixed or chosen on representative patches (§3.6,
+    without dispersion); records the choice in ``job.log["weights"]``.
+
+    Raises
+    ------
+    DataError
+        A weight patch origin that is odd or leaves the image.
+    """
+    o = job.options
     t0 = time.perf_counter()
+    criterion, fixed = o.criterion, o.fixed_weights
+    raw = job.raw
     if fixed is None:
-        if isinstance(weight_patches, int):
-            origins = representative_patches(y, weight_patch_px, weight_patches)
+        if isinstance(o.weight_patches, (int, np.integer)):
+            origins = representative_patches(job.y, o.weight_patch_px, int(o.weight_patches))
         else:
-            origins = [tuple(int(v) for v in o) for o in weight_patches]
-        size = min(weight_patch_px, raw.shape[0], raw.shape[1])
+            origins = [tuple(int(v) for v in origin) for origin in o.weight_patches]
+        size = min(o.weight_patch_px, raw.shape[0], raw.shape[1])
         problems, truths = [], []
         for r, c in origins:
             if (
@@ -553,78 +471,105 @@ def reconstruct(
                     f"weight patch origin ({r}, {c}) must be even and keep a {size}-px patch "
                     "inside the image"
                 )
-            formation = build_formation(space, (size, size), cfa, colour_gain=colour_gain)
+            formation = build_formation(job.space, (size, size), o.cfa, colour_gain=job.colour_gain)
             problems.append(
                 Problem(
                     formation,
-                    y[r : r + size, c : c + size],
-                    terms,
-                    (1.0,) * len(terms),
-                    nonneg,
-                    smoothness=smoothness,
+                    job.y[r : r + size, c : c + size],
+                    o.terms,
+                    (1.0,) * len(o.terms),
+                    o.nonneg,
+                    smoothness=o.smoothness,
                 )
             )
             if truth is not None:
                 truths.append(
                     np.asarray(truth, dtype=np.float64)[r : r + size, c : c + size]
-                    / (raw_scale * colour_gain)
+                    / (job.raw_scale * job.colour_gain)
                 )
-        truth_matrix = None
-        if criterion == "msec":
-            truth_matrix = _spectral_matrix(space)
         selection = select_weights(
             problems,
             criterion=criterion,
             truths=truths or None,
-            truth_matrix=truth_matrix,
-            exact=exact_weights,
+            truth_matrix=_spectral_matrix(job.space) if criterion == "msec" else None,
+            exact=o.exact_weights,
         )
         chosen = selection.weights
-        log["weights"] = {
+        entry = {
             "values": list(chosen),
             "criterion": criterion,
             "criterion_value": selection.value,
             "rounds": selection.rounds,
             "solves": selection.solves,
-            "exact": exact_weights,
-            "patches": [list(o) for o in origins],
+            "exact": o.exact_weights,
+            "patches": [list(origin) for origin in origins],
             "patch_px": size,
         }
     else:
         chosen = fixed
-        log["weights"] = {"values": list(chosen), "criterion": "fixed"}
-    log["weights"]["requested"] = weights if isinstance(weights, str) else list(chosen)
-    log["weights"]["seconds"] = time.perf_counter() - t0
+        entry = {"values": list(chosen), "criterion": "fixed"}
+    entry["requested"] = o.weights if isinstance(o.weights, str) else list(chosen)
+    entry["seconds"] = time.perf_counter() - t0
+    job.log["weights"] = entry
+    return tuple(chosen)
 
+
+def solve_patches(
+    job: PreparedProblem,
+    weights: Sequence[float],
+    *,
+    progress: Callable[[int, int], None] | None = None,
+) -> tuple[np.ndarray, list[dict]]:
+    """Stage 3: solve every patch with `weights` (on Dask); the normalised latent image
+    and the per-patch records. Weights not chosen by :func:`choose_weights` for this job
+    are logged as fixed."""
+    o = job.options
+    # weights given here rather than by choose_weights (e.g. another image's) are fixed
+    job.log.setdefault(
+        "weights", {"values": list(weights), "criterion": "fixed", "requested": list(weights)}
+    )
     t1 = time.perf_counter()
     solver = SolverOptions(
-        terms,
-        tuple(chosen),
-        nonneg,
-        rtol,
-        atol,
-        max_iter,
-        exact=exact,
-        direct=direct,
-        interpolation=interpolation,
-        smoothness=smoothness,
+        o.terms,
+        tuple(weights),
+        o.nonneg,
+        o.tolerance,
+        job.atol,
+        o.max_iter,
+        exact=bool(o.exact),
+        direct=o.direct,
+        interpolation=o.interpolation,
+        smoothness=o.smoothness,
     )
-    latent_norm, records = reconstruct_patches(
-        y,
-        cfa=cfa,
-        latent=space,
-        colour_gain=colour_gain,
-        model=solve_model,
+    latent, records = reconstruct_patches(
+        job.y,
+        cfa=o.cfa,
+        latent=job.space,
+        colour_gain=job.colour_gain,
+        model=job.solve_model,
         solver=solver,
-        options=options,
-        scheduler=scheduler,
+        options=job.patches,
+        scheduler=o.scheduler,
         progress=progress,
     )
-    log["solve_seconds"] = time.perf_counter() - t1
-    latent_image = latent_norm * (raw_scale * colour_gain)
-    if correction == "warp":
+    job.log["solve_seconds"] = time.perf_counter() - t1
+    return latent, records
+
+
+def assemble(job: PreparedProblem, latent: np.ndarray, records: list[dict]) -> Reconstruction:
+    """Stage 4: undo the normalisation, warp onto the reference geometry (§3.9.2's
+    ``correction="warp"``), and the spectral and raw-colour images with the log.
+
+    Raises
+    ------
+    DataError
+        NaN or Inf in an output (a bug: please report it).
+    """
+    o, space, log = job.options, job.space, job.log
+    latent_image = latent * (job.raw_scale * job.colour_gain)
+    if o.correction == "warp":
         t2 = time.perf_counter()
-        latent_image = warp_latent(latent_image, space, model)
+        latent_image = warp_latent(latent_image, space, o.model)
         log["warp_seconds"] = time.perf_counter() - t2
     spectral = space.spectral_values(latent_image)
     raw_colour = space.raw_colour(latent_image)
@@ -633,7 +578,6 @@ def reconstruct(
             raise DataError(f"reconstruction produced NaN/Inf in the {name}; please report this")
     log["patches"] = _patch_summary(records)
     log["patch_records"] = records
-    log["seconds"] = time.perf_counter() - started
     return Reconstruction(
         spectral.astype(np.float32),
         None if space.centres_nm is None else space.centres_nm.copy(),

@@ -27,6 +27,27 @@ from labkit.errors import ConfigError, DataError
 SCHEDULERS = ("threads", "processes", "sync")
 #: Texture below which a patch counts as flat (passed to reconstruct, counted in the summary).
 FLAT_THRESHOLD = 0.01
+#: How the command line spells the options of :class:`reconstruction.ReconstructOptions`.
+CLI_NAMES = {
+    "cfa": "--cfa",
+    "response": "--response",
+    "bands": "--bands",
+    "dispersion": "--dispersion",
+    "correction": "--correction",
+    "interpolation": "--interpolation",
+    "prior": "--prior",
+    "nonneg": "--nonneg",
+    "spectral_smoothness": "--spectral-smoothness",
+    "weights": "--weights",
+    "latent": "--latent",
+    "reference": "--reference",
+    "rtol": "--rtol",
+    "exact": "--exact",
+    "patch_px": "--patch-px",
+    "pad_px": "--pad-px",
+    "scheduler": "--scheduler",
+}
+
 #: The weight criteria the command line can use (``auto:msec`` needs the true image).
 CLI_CRITERIA = ("dmc", "dmc-menon", "dmc-malvar", "mdc")
 
@@ -197,13 +218,8 @@ class _Job:
     """Everything read and checked before any work starts."""
 
     raw: Any  # labkit.io.RawImage
-    cfa: str
-    response: Any  # Spectra or None
     response_source: str | None
-    bands: list[float] | None
-    dispersion: Any  # DispersionModel or None
-    reference: str | None
-    options: dict[str, Any]  # keyword arguments of reconstruct() besides the above
+    options: Any  # reconstruction.ReconstructOptions
 
 
 def _reconstruct(args: argparse.Namespace) -> int:
@@ -220,17 +236,7 @@ def _reconstruct(args: argparse.Namespace) -> int:
 
         with warnings.catch_warnings():  # the summary prints it from the log
             warnings.simplefilter("ignore", NarrowBandWarning)
-            result = reconstruct(
-                job.raw.raw,
-                cfa=job.cfa,
-                response=job.response,
-                bands=job.bands,
-                dispersion=job.dispersion,
-                reference=job.reference,
-                flat_threshold=FLAT_THRESHOLD,
-                progress=bar.update,
-                **job.options,
-            )
+            result = reconstruct(job.raw.raw, job.options, progress=bar.update)
     except OSError as error:
         if not args.scheduler.startswith("tcp://"):
             raise
@@ -245,18 +251,12 @@ def _reconstruct(args: argparse.Namespace) -> int:
 
 # -- checking -------------------------------------------------------------------------
 def _prepare(args: argparse.Namespace) -> _Job:
-    """Read and check every input and option; raises before anything is written."""
+    """Read the inputs and build the validated options; raises before anything is written."""
     from labkit.io import read_mosaic
-    from reconstruction.operators.dispersion import INTERPOLATIONS
-    from reconstruction.reconstruct import CORRECTIONS, LATENTS, REFERENCES
+    from reconstruction import ReconstructOptions
+    from reconstruction.options import OptionError
+    from reconstruction.reconstruct import check_raw
 
-    latent = _choice(args.latent, "--latent", LATENTS)
-    reference = _choice(args.reference, "--reference", (*REFERENCES, "none"))
-    correction = _choice(args.correction, "--correction", CORRECTIONS)
-    if correction == "warp" and args.dispersion is None:
-        raise ConfigError("--correction warp needs --dispersion MODEL.yaml to warp with")
-
-    interpolation = _choice(args.interpolation, "--interpolation", INTERPOLATIONS)
     scheduler = _scheduler(args.scheduler)
     rtol = None if args.rtol is None else _positive_float(args.rtol, "--rtol")
     smoothness = None
@@ -270,14 +270,13 @@ def _prepare(args: argparse.Namespace) -> _Job:
             "give either --rig (camera response and CFA from the rig file) or --response "
             "(a response CSV), not both"
         )
-    if latent == "spectral" and args.rig is None and args.response is None:
+    if args.latent == "spectral" and args.rig is None and args.response is None:
         raise ConfigError(
             "a spectral reconstruction needs the camera response: give --rig RIG.yaml or "
             "--response FILE.csv (wavelength_nm,R,G,B)"
         )
-    if latent == "colour" and args.bands is not None:
-        raise ConfigError("--latent colour estimates raw colour and takes no --bands")
     bands = None if args.bands is None else _bands(args.bands)
+    _check_weights(args.weights)
 
     if not args.raw.is_file():
         raise DataError(
@@ -299,11 +298,8 @@ def _prepare(args: argparse.Namespace) -> _Job:
         raw = read_mosaic(args.raw, cfa=rig.cfa, cfa_from=str(args.rig))
     else:
         raw = read_mosaic(args.raw, cfa=args.cfa)
-    from reconstruction.reconstruct import check_dispersion_model, check_raw
-
     check_raw(raw.raw, where=f"raw image {args.raw}")
 
-    cfa = raw.cfa
     response, source = None, None
     if rig is not None:
         source = rig.response_source()
@@ -311,71 +307,38 @@ def _prepare(args: argparse.Namespace) -> _Job:
     elif args.response is not None:
         source = args.response
         response = _response(source, "--response")
-
-    from reconstruction import PRIORS, LatentSpace, prior_terms
-    from reconstruction.reconstruct import parse_weights
-
-    channels = 3
-    if latent == "spectral":
-        where = f"--bands {args.bands}"
-        if bands is None and _is_sensor_map(source):
-            bands = [float(w) for w in response.wavelengths]  # the map's own bands
-            where = f"the bands of {source}"
-        else:
-            space = _latent_space(LatentSpace, response, None, f"camera response {source}")
-        if bands is not None:
-            space = _latent_space(LatentSpace, response, bands, where)
-        channels = space.channels
-    if args.prior not in PRIORS:
-        raise ConfigError(
-            f"unknown --prior {args.prior!r}; use one of {', '.join(PRIORS)} "
-            "(thesis Table 3.1, and VTV)"
+    names = dict(CLI_NAMES)
+    if args.latent == "spectral" and bands is None and _is_sensor_map(source):
+        bands = [float(w) for w in response.wavelengths]  # the map's own bands
+        names["bands"] = f"the bands of {source}"
+    elif source is not None:
+        names["response"] = f"camera response {source}"
+    try:
+        options = ReconstructOptions(
+            cfa=raw.cfa,
+            response=response if args.latent == "spectral" else None,
+            bands=bands,
+            dispersion=args.dispersion,
+            correction=args.correction,
+            interpolation=args.interpolation,
+            prior=args.prior,
+            nonneg=args.nonneg,
+            spectral_smoothness=smoothness,
+            weights=args.weights,
+            latent=args.latent,
+            reference=None if args.reference == "none" else args.reference,
+            rtol=rtol,
+            exact=True if args.exact else None,
+            patch_px=patch_px,
+            pad_px=pad_px,
+            flat_threshold=FLAT_THRESHOLD,
+            scheduler=scheduler,
         )
-    terms = prior_terms(args.prior, channels=channels)
-    _check_weights(args.weights, parse_weights, args.prior, terms)
-    dispersion = None
+    except OptionError as error:
+        raise ConfigError(error.message(names)) from None
     if args.dispersion is not None:
-        from calibration.dispersion_model import load_dispersion_model
-
-        dispersion = check_dispersion_model(
-            load_dispersion_model(args.dispersion),
-            raw.raw.shape,
-            latent,
-            where=f"--dispersion {args.dispersion}",
-            correction=correction,
-        )
-
-    options: dict[str, Any] = dict(
-        prior=args.prior,
-        nonneg=args.nonneg,
-        weights=args.weights,
-        latent=latent,
-        correction=correction,
-        interpolation=interpolation,
-        exact=True if args.exact else None,
-        patch_px=patch_px,
-        pad_px=pad_px,
-        scheduler=scheduler,
-    )
-    if rtol is not None:
-        options["rtol"] = rtol
-    if smoothness is not None:
-        if smoothness > 0 and latent != "spectral":
-            raise ConfigError(
-                "--spectral-smoothness applies to --latent spectral (bands along λ); "
-                "drop it for --latent colour"
-            )
-        options["spectral_smoothness"] = smoothness
-    return _Job(
-        raw=raw,
-        cfa=cfa,
-        response=response,
-        response_source=source,
-        bands=bands,
-        dispersion=dispersion,
-        reference=None if reference == "none" else reference,
-        options=options,
-    )
+        options.check_image(raw.raw.shape, where=f"--dispersion {args.dispersion}")
+    return _Job(raw=raw, response_source=source, options=options)
 
 
 def _choice(value: str, option: str, allowed: tuple[str, ...]) -> str:
@@ -449,8 +412,8 @@ def _bands(text: str) -> list[float]:
     return values
 
 
-def _check_weights(text: str, parse_weights: Any, prior: str, terms: tuple) -> None:
-    count = len(terms)
+def _check_weights(text: str) -> None:
+    """The criteria the command line offers (``auto:msec`` needs the Python API's truth)."""
     kind, _, rest = text.partition(":")
     if kind == "auto" and rest == "msec":
         raise ConfigError(
@@ -462,20 +425,6 @@ def _check_weights(text: str, parse_weights: Any, prior: str, terms: tuple) -> N
             f"--weights {text}: unknown criterion {rest!r}; use "
             f"{', '.join('auto:' + c for c in CLI_CRITERIA)} or fixed:W"
         )
-    if kind not in ("auto", "fixed"):
-        raise ConfigError(
-            f"--weights {text!r}: use auto:dmc, auto:mdc or fixed:W[,W…] (one weight per "
-            "prior term)"
-        )
-    if kind == "fixed" and len(rest.split(",")) != count:
-        raise ConfigError(
-            f"--weights {text}: --prior {prior} has {count} term(s), so give {count} "
-            f"comma-separated weight(s)"
-        )
-    try:
-        parse_weights(text, count)
-    except DataError as error:
-        raise ConfigError(f"--weights: {error}") from None
 
 
 def _check_out(out: Path) -> None:
@@ -502,13 +451,6 @@ def _is_sensor_map(source: str | None) -> bool:
     from calibration.sensitivity import is_sensitivity_file
 
     return source is not None and is_sensitivity_file(source)
-
-
-def _latent_space(latent_space: Any, response: Any, bands: list[float] | None, where: str) -> Any:
-    try:
-        return latent_space.spectral(response, bands)
-    except DataError as error:
-        raise DataError(f"{where}: {error}") from None
 
 
 # -- running ----------------------------------------------------------------------------
@@ -540,7 +482,7 @@ def _write_outputs(args: argparse.Namespace, job: _Job, result: Any) -> dict[str
         "command": "labkit reconstruct",
         "input": str(args.raw),
         "raw": {
-            "cfa": job.cfa,
+            "cfa": job.raw.cfa,
             "shape": list(job.raw.raw.shape),
             "exposure_s": job.raw.exposure_s,
             "illumination": job.raw.illumination,
@@ -552,11 +494,11 @@ def _write_outputs(args: argparse.Namespace, job: _Job, result: Any) -> dict[str
         "dispersion_model": None if args.dispersion is None else str(args.dispersion),
     }
     arguments = {k: v for k, v in vars(args).items() if k not in ("handler", "command")}
-    options = {k: v for k, v in job.options.items() if k != "weights"}
+    options = {k: v for k, v in job.options.as_dict().items() if k != "weights"}
     return result.save(
         args.out,
         provenance=provenance,
-        log={"arguments": arguments, "options": {**options, "flat_threshold": FLAT_THRESHOLD}},
+        log={"arguments": arguments, "options": options},
     )
 
 

@@ -55,7 +55,7 @@ def grey_raw(shape=SHAPE, colour=(0.3, 0.5, 0.2)) -> np.ndarray:
         ({"correction": "warp"}, "needs a dispersion model"),
         ({"interpolation": "lanczos"}, "unknown interpolation"),
         ({"spectral_smoothness": -1e-3}, "spectral_smoothness must be finite and ≥ 0"),
-        ({"latent": "colour", "spectral_smoothness": 1e-3}, "applies to spectral latent"),
+        ({"latent": "colour", "spectral_smoothness": 1e-3}, "applies to latent spectral"),
         ({"rtol": 1.5}, r"rtol must be a number in \(0, 1\)"),
         ({"rtol": "1e-4"}, "rtol must be a number"),
     ],

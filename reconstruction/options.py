@@ -1,0 +1,442 @@
+"""The options of a reconstruction, validated once (:class:`ReconstructOptions`).
+
+:func:`~reconstruction.reconstruct.reconstruct` takes them as keywords or as one object;
+``labkit reconstruct`` builds the object from its command line. Every check that does not
+need the raw image happens when the object is made, so a bad option fails before any file
+is read or any work starts; :meth:`ReconstructOptions.check_image` adds those that need
+the image's size (the dispersion model's calibration size, the patch overlap). Errors are
+:class:`OptionError`, whose message names the option as the caller spells it: the keyword
+for Python, the flag for the command line (:meth:`OptionError.message`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, fields
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from calibration.dispersion_model import DispersionModel, load_dispersion_model
+from labkit.cfa import check_layout
+from labkit.errors import ConfigError, DataError
+from labkit.spectra import Spectra
+from reconstruction.image_formation import LatentSpace
+from reconstruction.operators.dispersion import INTERPOLATIONS
+from reconstruction.prior_terms import PRIORS, PriorTerm, prior_terms
+from reconstruction.problem import SUGGESTED_SMOOTHNESS
+from reconstruction.solvers.admm import default_rtol
+from reconstruction.weights import CRITERIA
+
+CORRECTIONS = ("model", "warp")
+"""How a dispersion model is undone: Φ inside the problem (3.1), or warping after (§3.9.2)."""
+
+LATENTS = ("spectral", "colour")
+"""What is estimated: the spectral image (3.1), or the colour image directly (3.27)."""
+
+REFERENCES = ("mean-colour",)
+"""Reference spectra of the §6.3 variant (None: the plain problem)."""
+
+KERNELS = ("gaussian", "sinc")
+"""Kernels of the spectral basis (:class:`~reconstruction.image_formation.LatentSpace`)."""
+
+
+class OptionError(ConfigError, DataError):
+    """An invalid reconstruction option.
+
+    A :class:`~labkit.errors.ConfigError`, and a :class:`~labkit.errors.DataError` as
+    :func:`~reconstruction.reconstruct.reconstruct` raised for bad options before the
+    options object existed. ``str(error)`` names the option by its keyword;
+    :meth:`message` by any other spelling.
+    """
+
+    def __init__(self, option: str, template: str) -> None:
+        self.option = option
+        self.template = template
+        super().__init__(self.message())
+
+    def message(self, names: Mapping[str, str] | None = None) -> str:
+        """The message with every option called ``names[keyword]`` (default: its keyword)."""
+        return self.template.format_map(_Names(names or {}, self.option))
+
+
+class _Names(dict):
+    """``{option}`` → the failing option's name; ``{keyword}`` → that option's name."""
+
+    def __init__(self, names: Mapping[str, str], option: str) -> None:
+        super().__init__()
+        self.names = names
+        self.option = option
+
+    def __missing__(self, key: str) -> str:
+        key = self.option if key == "option" else key
+        return self.names.get(key, key)
+
+
+def parse_weights(
+    weights: str | Sequence[float], count: int
+) -> tuple[str, tuple[float, ...] | None]:
+    """``"auto:dmc"`` → ("dmc", None); ``"fixed:0.1,0.2"`` or a sequence → ("fixed", values)."""
+    if isinstance(weights, str):
+        kind, _, rest = weights.partition(":")
+        if kind == "auto":
+            if rest not in CRITERIA:
+                raise DataError(
+                    f"unknown weight criterion {rest!r} in {weights!r}; use auto:dmc, "
+                    "auto:dmc-malvar, auto:dmc-menon, auto:mdc or auto:msec"
+                )
+            return rest, None
+        if kind != "fixed":
+            raise DataError(
+                f"weights {weights!r}: use auto:dmc|auto:dmc-menon|auto:mdc|auto:msec or "
+                "fixed:W1[,W2]"
+            )
+        try:
+            values = tuple(float(v) for v in rest.split(","))
+        except ValueError:
+            raise DataError(f"weights {weights!r}: fixed weights must be numbers") from None
+    else:
+        values = tuple(float(v) for v in weights)
+    if len(values) != count:
+        raise DataError(f"the prior has {count} term(s) but {len(values)} weight(s) were given")
+    if any(not np.isfinite(v) or v < 0 for v in values):
+        raise DataError(f"weights must be finite and ≥ 0, got {values}")
+    return "fixed", values
+
+
+@dataclass(frozen=True, eq=False)
+class ReconstructOptions:
+    """What to reconstruct and how: every option of
+    :func:`~reconstruction.reconstruct.reconstruct` but the image, the truth and the
+    progress callback. Fields keep the values given; the properties give the values in
+    effect (:attr:`smoothness`, :attr:`tolerance`, :attr:`model`, …).
+
+    Parameters
+    ----------
+    cfa : str
+        Bayer layout (RGGB, GRBG, GBRG, BGGR).
+    response : Spectra, optional
+        Camera response R, G, B over wavelength; required for ``latent="spectral"``.
+    bands : sequence of float, optional
+        Band centres, nm, equally spaced; default chosen from the response (§3.3.2).
+    dispersion : DispersionModel or path, optional
+        ``to_reference`` model of this camera and image size: spectral for
+        ``latent="spectral"``, colour-channel for ``latent="colour"``. None: no Φ.
+    correction : {"model", "warp"}
+        ``"model"``: Φ inside the problem (3.1)/(3.27). ``"warp"``: the §3.9.2 variant —
+        solve without Φ (sparser, faster, immune to model errors), then warp every latent
+        channel onto the reference geometry (bilinear; spectral channels at their band
+        centres); the model may then have either direction.
+    interpolation : {"bilinear", "cubic"}
+        Sampling weights of Φ (``correction="model"``): bilinear, as the thesis (§3.2.5),
+        or Keys' cubic convolution, which shifts without bilinear's blur and so without
+        the overshoot it provokes at edges, at a higher run time (figures in the README).
+    prior : str
+        A combination of Table 3.1 (``L1``, ``L2``, ``Lap1``, ``Lap2``, ``L1L1``,
+        ``L2L2``, ``L1SpatialLap2``, ``L1SpectralLap2``), or ``VTV``: vectorial total
+        variation ‖∇xy I‖₂,₁, which places edges at the same position in every band
+        (:mod:`reconstruction.prior_terms`).
+    nonneg : bool
+        Constrain the latent image to be non-negative.
+    spectral_smoothness : float, optional
+        σ of the spectral roughness term σ‖S I‖² (normalised units; beyond the thesis;
+        :class:`~reconstruction.operators.SpectralRoughness`): among the spectra the data
+        and the prior cannot tell apart, the solve picks the smoothest rather than the
+        smallest, without pulling a patch's mean colour. Default
+        :data:`~reconstruction.problem.SUGGESTED_SMOOTHNESS` (1e-3) for a spectral latent
+        image: lower spectral, colour and edge errors than σ = 0, weights the DMC
+        determines well, and an optimum the default solve reaches within 1e-4. 0 is the
+        thesis' problem, for narrow-band light (bandpass filters, lasers, LEDs), whose
+        spectra the term biases (measurements in :mod:`reconstruction.problem`). Spectral
+        latent only (default 0 for ``latent="colour"``).
+    weights : str or sequence of float
+        ``"auto:dmc"`` (default; the thesis' demosaicing criterion against bilinear
+        demosaicing), ``"auto:dmc-menon"`` / ``"auto:dmc-malvar"`` (the same against a
+        stronger demosaic: sharper weights for edge-preserving priors, e.g. VTV; not for
+        narrow-band light), ``"auto:mdc"``, ``"auto:msec"`` (needs `truth`), or fixed
+        weights (``"fixed:0.01"`` or a sequence), in normalised units
+        (:mod:`reconstruction.weights`).
+    latent : {"spectral", "colour"}
+        Problem (3.1), or direct colour estimation (3.27).
+    reference : {None, "mean-colour"}
+        ``"mean-colour"``: the §6.3 variant (reconstruct relative to a smooth spectrum
+        fitted to the image's mean colour).
+    kernel : {"gaussian", "sinc"}
+        Kernel of the spectral basis. A response tabulated at exactly the band centres (a
+        sensor map, :meth:`calibration.ChannelSensitivity.as_response`) is a discrete model
+        whatever the kernel (:class:`~reconstruction.image_formation.LatentSpace`).
+    rtol : float, optional
+        ADMM relative tolerance per patch; default
+        :func:`~reconstruction.solvers.admm.default_rtol`: 1e-5 when
+        ``spectral_smoothness`` > 0, which brings each patch's objective within 1e-4 of
+        its optimum for every prior, and 1e-4 at σ = 0.
+    max_iter : int
+        ADMM iteration limit per patch.
+    exact : bool, optional
+        With non-negativity and L2-type priors, solve every patch exactly (projected-Newton
+        active-set method; :func:`~reconstruction.solvers.admm.solve`'s ``exact_nonneg``).
+        None (default): with spectral smoothness σ > 0, patches whose initial estimate has
+        few values at zero are solved exactly and directly (``direct``: no ADMM, faster
+        than ADMM's solve to within 1e-4), the others by ADMM; at σ = 0, ADMM. At σ = 0
+        the exact optimum is the poorer image (README, spectral smoothness), and reaching
+        it with Φ costs several times the ADMM solve.
+    patch_px : int
+        Patch size, px (even). Small patches suit the FFT preconditioner: across a patch
+        the dispersion departs less from its mean translation.
+    pad_px : int, optional
+        Overlap on each side, px (even); default the smallest even value ≥ 8 and ≥ twice the
+        model's largest displacement.
+    flat_threshold : float or None
+        Relative texture above the image's noise below which a patch counts as flat
+        (None: never skip).
+    weight_patches : int or sequence of (row, col)
+        How many representative patches to select weights on (chosen by texture), or
+        their origins.
+    weight_patch_px : int
+        Size of those patches, px (even).
+    scheduler : str or distributed.Client, optional
+        Dask scheduler (see :func:`~reconstruction.patches.reconstruct_patches`).
+
+    Raises
+    ------
+    OptionError
+        An option is invalid, or options contradict each other; the message says which
+        and how to fix it.
+    """
+
+    cfa: str
+    response: Spectra | None = None
+    bands: Sequence[float] | None = None
+    dispersion: DispersionModel | str | Path | None = None
+    correction: str = "model"
+    interpolation: str = "bilinear"
+    prior: str = "L2"
+    nonneg: bool = True
+    spectral_smoothness: float | None = None
+    weights: str | Sequence[float] = "auto:dmc"
+    latent: str = "spectral"
+    reference: str | None = None
+    kernel: str = "gaussian"
+    rtol: float | None = None
+    max_iter: int = 1000
+    exact: bool | None = None
+    patch_px: int = 48
+    pad_px: int | None = None
+    flat_threshold: float | None = 0.01
+    weight_patches: Sequence[tuple[int, int]] | int = 1
+    weight_patch_px: int = 64
+    scheduler: str | object | None = None
+
+    def __post_init__(self) -> None:
+        try:
+            layout = check_layout(self.cfa)
+        except DataError as error:
+            raise OptionError("cfa", f"{{option}}: {error}") from None
+        object.__setattr__(self, "cfa", layout)
+        _choice("latent", self.latent, LATENTS)
+        _choice("correction", self.correction, CORRECTIONS)
+        _choice("interpolation", self.interpolation, INTERPOLATIONS)
+        _choice("kernel", self.kernel, KERNELS)
+        if self.reference is not None:
+            _choice("reference", self.reference, REFERENCES)
+        if self.prior not in PRIORS:
+            raise OptionError(
+                "prior",
+                f"unknown {{option}} {self.prior!r}; use one of {', '.join(PRIORS)} (thesis "
+                "Table 3.1, and VTV)",
+            )
+        if self.bands is not None:
+            object.__setattr__(self, "bands", tuple(float(b) for b in self.bands))
+        self.space  # noqa: B018  (built now: a response that cannot serve fails here)
+        smoothness = self.smoothness
+        if not (math.isfinite(smoothness) and smoothness >= 0):
+            raise OptionError(
+                "spectral_smoothness",
+                f"{{option}} must be finite and ≥ 0, got {self.spectral_smoothness!r}",
+            )
+        if smoothness > 0 and self.latent != "spectral":
+            raise OptionError(
+                "spectral_smoothness",
+                "{option} applies to {latent} spectral (bands along λ); give 0, or leave it "
+                "out, with {latent} colour",
+            )
+        rtol = self.tolerance
+        if not (isinstance(rtol, (int, float)) and 0 < rtol < 1):
+            raise OptionError("rtol", f"{{option}} must be a number in (0, 1), got {rtol!r}")
+        if self.exact and self.l1_terms:
+            raise OptionError(
+                "exact",
+                f"the exact finish ({{option}}) applies to L2-type priors (L2, Lap2, L2L2); "
+                f"{self.prior} has L1 terms, which only ADMM solves: drop it or pick an "
+                "L2-type prior",
+            )
+        self._check_weights()
+        if self.correction == "warp" and self.dispersion is None:
+            raise OptionError(
+                "correction", "{option} warp needs a dispersion model ({dispersion}) to warp with"
+            )
+        self.model  # noqa: B018  (loaded now: a missing or malformed file fails here)
+        _whole("max_iter", self.max_iter, least=1)
+        _whole("patch_px", self.patch_px, least=8, even=True)
+        if self.pad_px is not None:
+            _whole("pad_px", self.pad_px, least=0, even=True)
+        _whole("weight_patch_px", self.weight_patch_px, least=8, even=True)
+        if isinstance(self.weight_patches, (int, np.integer)):
+            _whole("weight_patches", self.weight_patches, least=1)
+        if self.flat_threshold is not None and not (
+            math.isfinite(self.flat_threshold) and self.flat_threshold >= 0
+        ):
+            raise OptionError(
+                "flat_threshold",
+                f"{{option}} must be finite and ≥ 0 (or None: never skip), got "
+                f"{self.flat_threshold!r}",
+            )
+
+    def _check_weights(self) -> None:
+        count = len(self.terms)
+        text = self.weights if isinstance(self.weights, str) else None
+        kind = None if text is None else text.partition(":")[0]
+        if kind is not None and kind not in ("auto", "fixed"):
+            raise OptionError(
+                "weights",
+                f"{{option}} {text!r}: use auto:dmc, auto:dmc-menon, auto:dmc-malvar, "
+                "auto:mdc, auto:msec or fixed:W[,W…] (one weight per prior term)",
+            )
+        given = len(text.partition(":")[2].split(",")) if kind == "fixed" else None
+        if text is None:
+            given = len(self.weights)
+        if given is not None and given != count:
+            raise OptionError(
+                "weights",
+                f"{{option}} {self.weights!r}: {{prior}} {self.prior} has {count} term(s), so "
+                f"give {count} weight(s)",
+            )
+        try:
+            parse_weights(self.weights, count)
+        except DataError as error:
+            raise OptionError("weights", f"{{option}}: {error}") from None
+
+    # -- derived -----------------------------------------------------------------------
+    @cached_property
+    def space(self) -> LatentSpace:
+        """The latent space (before the §6.3 reference scale, which needs the image)."""
+        if self.latent == "colour":
+            if self.bands is not None:
+                raise OptionError(
+                    "bands", "direct colour estimation (latent colour) takes no {option}"
+                )
+            return LatentSpace.colour()
+        if self.response is None:
+            raise OptionError(
+                "response", "spectral reconstruction needs the camera response ({option})"
+            )
+        try:
+            return LatentSpace.spectral(self.response, self.bands, kernel=self.kernel)
+        except DataError as error:
+            option = "bands" if self.bands is not None else "response"
+            raise OptionError(option, f"{{option}}: {error}") from None
+
+    @cached_property
+    def model(self) -> DispersionModel | None:
+        """The dispersion model (loaded when `dispersion` is a path)."""
+        if self.dispersion is None or isinstance(self.dispersion, DispersionModel):
+            return self.dispersion
+        return load_dispersion_model(self.dispersion)
+
+    @property
+    def dispersion_source(self) -> str | None:
+        """Where the model came from: its path, ``"in memory"`` or None."""
+        if self.dispersion is None:
+            return None
+        return str(self.dispersion) if isinstance(self.dispersion, (str, Path)) else "in memory"
+
+    @cached_property
+    def terms(self) -> tuple[PriorTerm, ...]:
+        """The prior's terms (Table 3.1)."""
+        try:
+            return prior_terms(self.prior, channels=self.space.channels)
+        except DataError as error:
+            raise OptionError("prior", f"{{option}}: {error}") from None
+
+    @property
+    def smoothness(self) -> float:
+        """σ in effect: :data:`~reconstruction.problem.SUGGESTED_SMOOTHNESS` for a spectral
+        latent image unless given, 0 for colour."""
+        if self.spectral_smoothness is not None:
+            try:
+                return float(self.spectral_smoothness)
+            except (TypeError, ValueError):
+                return math.nan
+        return SUGGESTED_SMOOTHNESS if self.latent == "spectral" else 0.0
+
+    @property
+    def tolerance(self) -> float:
+        """ADMM's relative tolerance in effect (:func:`default_rtol` unless given)."""
+        return default_rtol(self.smoothness) if self.rtol is None else self.rtol
+
+    @property
+    def l1_terms(self) -> bool:
+        return any(t.norm == 1 for t in self.terms)
+
+    @property
+    def criterion(self) -> str:
+        """The weight criterion (``"fixed"`` for fixed weights)."""
+        return parse_weights(self.weights, len(self.terms))[0]
+
+    @property
+    def fixed_weights(self) -> tuple[float, ...] | None:
+        return parse_weights(self.weights, len(self.terms))[1]
+
+    @property
+    def direct(self) -> bool:
+        """Solve patches with few values at zero exactly and directly (σ > 0, non-negative,
+        L2-type, `exact` left to the default)."""
+        return self.exact is None and self.smoothness > 0 and self.nonneg and not self.l1_terms
+
+    @property
+    def exact_weights(self) -> bool:
+        """Score weights on exact optima (:func:`~reconstruction.weights.select_weights`):
+        with σ > 0 the patch solves reach the optimum; not the MDC, whose ideal point needs
+        solves at w = ε, where only the ridge fixes the exact optimum."""
+        return self.smoothness > 0 and not self.l1_terms and self.criterion != "mdc"
+
+    def check_image(self, shape: tuple[int, int], *, where: str = "the raw image") -> None:
+        """The checks that need the raw image's size `shape` (rows, cols)."""
+        from reconstruction.reconstruct import check_dispersion_model
+
+        check_dispersion_model(
+            self.model, shape, self.latent, where=where, correction=self.correction
+        )
+
+    def as_dict(self) -> dict[str, Any]:
+        """The options as given (the response and dispersion model by name), JSON-ready."""
+        out: dict[str, Any] = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.name == "response" and value is not None:
+                value = "in memory"
+            elif f.name == "dispersion":
+                value = self.dispersion_source
+            elif f.name == "scheduler" and value is not None and not isinstance(value, str):
+                value = type(value).__name__
+            elif isinstance(value, tuple):
+                value = list(value)
+            out[f.name] = value
+        return out
+
+
+def _choice(option: str, value: object, allowed: tuple[str, ...]) -> None:
+    if value not in allowed:
+        raise OptionError(
+            option, f"unknown {{option}} {value!r}; use {' or '.join(repr(a) for a in allowed)}"
+        )
+
+
+def _whole(option: str, value: object, *, least: int, even: bool = False) -> None:
+    ok = isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= least
+    if not ok or (even and value % 2):
+        kind = "an even whole number" if even else "a whole number"
+        raise OptionError(option, f"{{option}} is {value!r}; expected {kind} ≥ {least}")
