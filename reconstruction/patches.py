@@ -22,8 +22,9 @@ What a patch may skip
 
 Every patch with something to split (non-negativity, L1 terms) starts ADMM from
 :func:`~reconstruction.solvers.admm.initial_estimate` — one FFT solve with Φ as mean
-translations and the priors made quadratic — instead of the thesis' zeros: a third of
-the ADMM iterations, and the first CG solve, the longest, no longer starts from nothing.
+translations and the priors made quadratic — instead of the thesis' zeros: far fewer
+ADMM iterations, and the first CG solve, the longest, no longer starts from nothing
+(figures in the README, how it works).
 
 Per-patch diagnostics (solver report, what was skipped, time) travel in an extra plane of
 the output blocks, so they survive any scheduler, and are returned as records.

@@ -18,11 +18,11 @@ Criteria, each evaluated on the solution I* for a weight tuple:
   which §3.6 anticipates ("set the smoothness … based on the latest demosaicing
   algorithms"). Bilinear interpolation blurs edges, so the weight that best matches it
   blurs them too; Menon's green keeps them, and with the VTV prior the weight matched to it
-  suits edges and spectra alike. Measured on the simulated rig (344×408, 7 bands, cubic Φ,
-  VTV): ColorChecker weight 1.5e-3 → 0.0138, spectral RMSE 0.0785 → 0.0743, green edge
-  error 0.0138 → 0.0085 (Menon's own 0.0101); textured scene 1.4e-9 (the DMC's failure
-  mode at tiny weights, §3.6) → 7.7e-3, spectral RMSE 0.255 → 0.135, colour RMSE
-  R/G/B .069/.086/.092 → .030/.048/.049. Like Menon's demosaic itself, it relies on the
+  suits edges and spectra alike: on the simulated rig with VTV and cubic Φ it picks a
+  larger weight than the bilinear DMC on the ColorChecker, with a lower spectral error and
+  a green edge error below Menon's own, and on the textured scene it escapes the DMC's
+  failure mode at tiny weights (§3.6), with far lower spectral and colour errors (figures
+  in the README, colour fringes along edges). Like Menon's demosaic itself, it relies on the
   colour channels' correlation, which narrow-band light breaks: the thesis keeps bilinear
   for that reason, and so does the default.
 
@@ -127,11 +127,11 @@ class _Evaluator:
         # an L1 term moves ADMM's iterate by O(w/ρ) per iteration, so a solve warm-started
         # from a neighbouring weight's solution can stop at once with that solution, every
         # weight then scores alike and the search drifts to machine epsilon; each weight
-        # starts from its own initial estimate instead. Simulated ColorChecker, DMC: VTV
-        # 1.5e-3 instead of ~1e-15; L1 with σ = 1e-3 2.0e-3 instead of 7.9e-8 (spectral
-        # RMSE 0.091 against 0.363); L1 without σ 3.8e-4 instead of 5.4e-4 (0.101 against
-        # 0.105). L2 priors keep the warm start: with it the DMC picks 4.7e-4 for L2, with
-        # their own starts 2.5e-5 and a worse image (spectral RMSE 0.100 against 0.095).
+        # starts from its own initial estimate instead: on the simulated ColorChecker the
+        # DMC then picks sensible weights for VTV and for L1 with σ instead of tiny ones,
+        # and for L1 without σ a slightly better image. L2 priors keep the warm start: with
+        # their own starts the DMC picked a far smaller L2 weight and a worse image
+        # (figures in the README, colour fringes along edges).
         # (an exact solve's result does not depend on its start)
         self.own_starts = bool(solve_options.get("exact_nonneg")) or any(
             t.norm == 1 for t in self.problems[0].terms

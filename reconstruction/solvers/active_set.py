@@ -4,13 +4,14 @@ With L2-type priors (L2, Lap1, Lap2, L2L2) and non-negativity, problem (3.1) is 
 constrained quadratic programme ``min ½ xᵀKx − bᵀx, x ≥ 0`` with
 ``K = 2AᵀA + Σ_j 2w_j D_jᵀD_j + 2εI`` and ``b = 2Aᵀy``. Its KKT conditions are
 ``Kx − b = μ, x ≥ 0, μ ≥ 0, xᵀμ = 0``. ADMM's residual test stops while directions curved
-only by a small prior are still far off (1–10 % above the optimum at the weights the DMC
-picks), so :func:`polish` finishes its result with Bertsekas' projected Newton method: the
-active set S holds the values at zero whose gradient pushes outwards; the problem with
-``x_S = 0`` is solved on the free values, and the step towards that solution is projected
-onto x ≥ 0 and shortened until the objective falls enough (Armijo). It stops when the KKT
-residual is below :data:`KKT_TOLERANCE`. The rounds locate S with a loose solve tolerance
-and switch to a tight one once S repeats. Warm-started from ADMM, 5–20 rounds suffice.
+only by a small prior are still far off (well above the optimum at the small weights the
+DMC picks; figures in the README, how it works), so :func:`polish` finishes its result
+with Bertsekas' projected Newton method: the active set S holds the values at zero whose
+gradient pushes outwards; the problem with ``x_S = 0`` is solved on the free values, and
+the step towards that solution is projected onto x ≥ 0 and shortened until the objective
+falls enough (Armijo). It stops when the KKT residual is below :data:`KKT_TOLERANCE`.
+The rounds locate S with a loose solve tolerance and switch to a tight one once S repeats.
+Warm-started from ADMM, a few rounds suffice (figures in the README, how it works).
 
 Each round solves ``K_FF x_F = b_F`` on the free set F by conjugate gradients
 preconditioned with the FFT solver K̃ (exact without Φ; Φ by mean translations) restricted
@@ -45,7 +46,8 @@ from reconstruction.solvers.fourier import FourierSolver
 
 MAX_ACTIVE = 2000
 """Largest active set the preconditioner corrects for exactly (dense k × k matrix: 32 MB,
-factorised in ~0.1 s); beyond, the most strongly held values."""
+one Cholesky factorisation per round; its time is in the README, how it works); beyond,
+the most strongly held values."""
 
 MAX_ROUNDS = 30
 """Newton rounds before giving up (the last iterate, never worse than the start, is kept)."""
@@ -69,8 +71,8 @@ ADD_BATCH = 300
 """Most values :func:`solve_periodic` adds to its working set per round."""
 
 MAX_PERIODIC_ROUNDS = 100
-"""Rounds of :func:`solve_periodic` before it gives up (measured: 5–45 on 64² and 128²
-patches at weights from 4e-8 to 0.03)."""
+"""Rounds of :func:`solve_periodic` before it gives up: above the counts observed on 64²
+and 128² patches over a wide range of weights (figures in the README, how it works)."""
 
 
 @dataclass

@@ -294,8 +294,9 @@ def data_curvature(problem: Problem) -> float:
     """Mean diagonal of 2AᵀA per latent value (dispersion aside): the default ρ.
 
     With the colour matrix C and the Bayer channel fractions f = (¼, ½, ¼) this is
-    ``2 Σ_c f_c ‖C_c‖² / n``. Measured on textured patches, ADMM reaches the optimum in
-    tens of iterations with ρ near this value and in hundreds with ρ ten times larger.
+    ``2 Σ_c f_c ‖C_c‖² / n``. On textured patches ADMM reaches the optimum in far fewer
+    iterations with ρ near this value than with ρ ten times larger (figures in the README,
+    how it works).
     """
     c = problem.formation.colour_matrix
     fractions = np.array([0.25, 0.5, 0.25])
@@ -545,9 +546,10 @@ class _Anderson:
     of the newest residual f = g(y) − y by the last m residual differences ΔF. An
     extrapolation whose residual comes out more than :data:`ANDERSON_SAFEGUARD`-fold
     above the best so far is rejected: the iteration goes on from the plain step of the
-    point it was extrapolated from, and the memory restarts. (Keeping it instead cost
-    ADMM 330 iterations to recover on a 32² patch whose residual differences had become
-    nearly collinear near convergence: the objective jumped from 5.22 to 4.5e10.)
+    point it was extrapolated from, and the memory restarts. (Keeping it instead, where
+    the residual differences had become nearly collinear near convergence, threw the
+    objective up by orders of magnitude and cost ADMM many iterations to recover; figures
+    in the README, how it works.)
     """
 
     def __init__(self, memory: int) -> None:
