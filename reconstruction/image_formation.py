@@ -167,11 +167,10 @@ class LatentSpace:
 
     def spectral_values(self, latent: np.ndarray) -> np.ndarray:
         """The spectrum at the band centres, ``B(r ⊙ J)`` at ``centres_nm`` (…, n)."""
-        scaled = latent * self.scale
         if self.kind == "colour" or self.kernel == DISCRETE:
-            return scaled
+            return latent * self.scale
         at_centres = SpectralBasis((1, 1), self.centres_nm, self.centres_nm, kernel=self.kernel)
-        return scaled @ at_centres.matrix.T
+        return latent @ (at_centres.matrix * self.scale[None, :]).T  # one image-sized array
 
     def raw_colour(self, latent: np.ndarray) -> np.ndarray:
         """The latent image in raw colour (…, 3), without dispersion."""

@@ -565,22 +565,29 @@ def assemble(job: PreparedProblem, latent: np.ndarray, records: list[dict]) -> R
         NaN or Inf in an output (a bug: please report it).
     """
     o, space, log = job.options, job.space, job.log
-    latent_image = latent * (job.raw_scale * job.colour_gain)
     if o.correction == "warp":
         t2 = time.perf_counter()
-        latent_image = warp_latent(latent_image, space, o.model)
+        latent = warp_latent(latent, space, o.model)
         log["warp_seconds"] = time.perf_counter() - t2
-    spectral = space.spectral_values(latent_image)
-    raw_colour = space.raw_colour(latent_image)
-    for name, array in (("spectral image", spectral), ("raw colour image", raw_colour)):
+    # every step is linear: the normalisation is undone on each output in place, so that
+    # no extra image-sized copy of the latent image is made (full-size images: 320 MB each)
+    outputs = []
+    for name, convert in (
+        ("spectral image", space.spectral_values),
+        ("raw colour image", space.raw_colour),
+    ):
+        array = convert(latent)
+        array *= job.raw_scale * job.colour_gain
         if not np.all(np.isfinite(array)):
             raise DataError(f"reconstruction produced NaN/Inf in the {name}; please report this")
+        outputs.append(array.astype(np.float32))
+        del array
     log["patches"] = _patch_summary(records)
     log["patch_records"] = records
     return Reconstruction(
-        spectral.astype(np.float32),
+        outputs[0],
         None if space.centres_nm is None else space.centres_nm.copy(),
-        raw_colour.astype(np.float32),
+        outputs[1],
         space,
         log,
     )

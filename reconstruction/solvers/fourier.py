@@ -22,6 +22,9 @@ the solver doubles as the preconditioner of the conjugate-gradient solve with th
 
 from __future__ import annotations
 
+import hashlib
+import threading
+from collections import OrderedDict
 from collections.abc import Sequence
 
 import numpy as np
@@ -32,6 +35,9 @@ from labkit.errors import DataError
 from reconstruction.prior_terms import Term
 
 _QUADS = ((0, 0), (0, 1), (1, 0), (1, 1))  # s = (s_y, s_x), index 2 s_y + s_x
+
+BLOCK_CACHE_SIZE = 4
+"""Inverted block sets kept for reuse (:class:`_BlockCache`; a few MB to tens of MB each)."""
 
 SINGULAR_RESIDUAL = 1e-2
 """Largest relative residual ‖K K⁻¹ v − v‖ / ‖v‖ of the inverse on a random vector v before
@@ -97,6 +103,62 @@ def from_quadruples(grouped: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return spectrum.reshape(rows, cols, *rest)
 
 
+class _BlockCache:
+    """The inverted blocks of recent solvers, by the matrix they invert.
+
+    Without dispersion every patch of an image has the same matrix (same size, Bayer phase,
+    colour matrix, priors and weights): the patches of one image then invert it once,
+    not once per patch and penalty. The arrays are shared read-only; at most
+    :data:`BLOCK_CACHE_SIZE` sets are kept, the least recently used dropped first.
+    """
+
+    def __init__(self, size: int) -> None:
+        self.size = size
+        self._entries: OrderedDict[tuple, tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, key: tuple) -> tuple[np.ndarray, np.ndarray] | None:
+        with self._lock:
+            entry = self._entries.get(key)
+            if entry is not None:
+                self._entries.move_to_end(key)
+            return entry
+
+    def put(self, key: tuple, matrix: np.ndarray, inverse: np.ndarray) -> None:
+        matrix.flags.writeable = False
+        inverse.flags.writeable = False
+        with self._lock:
+            self._entries[key] = (matrix, inverse)
+            self._entries.move_to_end(key)
+            while len(self._entries) > self.size:
+                self._entries.popitem(last=False)
+
+    def clear(self) -> None:
+        with self._lock:
+            self._entries.clear()
+
+
+_BLOCKS = _BlockCache(BLOCK_CACHE_SIZE)
+
+
+def _matrix_key(
+    shape: tuple[int, int],
+    cfa: str,
+    colour: np.ndarray,
+    data_weight: float,
+    terms: Sequence[tuple[float, Term]],
+) -> tuple:
+    """What the matrix of a solver without dispersion depends on (identity aside)."""
+    digest = hashlib.blake2b(np.ascontiguousarray(colour, dtype=np.float64).tobytes())
+    for coefficient, term in terms:
+        if coefficient:
+            digest.update(f"{float(coefficient)!r} {type(term).__name__} {term!r}".encode())
+            extra = getattr(term, "colour", None)  # the smoothness term's colour matrix
+            if extra is not None:
+                digest.update(np.ascontiguousarray(extra, dtype=np.float64).tobytes())
+    return (shape, check_layout(cfa), colour.shape, float(data_weight), digest.hexdigest())
+
+
 class FourierSolver:
     """Solve ``(α AᵀA + Σ_t c_t D_tᵀD_t + β I) x = b`` exactly (periodic boundary).
 
@@ -118,8 +180,10 @@ class FourierSolver:
     Notes
     -----
     Memory: two sets of (rows·cols/4) complex (4n × 4n) matrices (the matrix and its
-    inverse), e.g. 210 MB for 160 × 160 px and 8 bands. The matrix must be positive
-    definite: give β > 0 unless the data and priors already determine every component.
+    inverse), e.g. 210 MB for 160 × 160 px and 8 bands. Without dispersion (a real colour
+    matrix) both are shared with every solver of the same matrix (:class:`_BlockCache`).
+    The matrix must be positive definite: give β > 0 unless the data and priors already
+    determine every component.
     """
 
     def __init__(
@@ -161,6 +225,9 @@ class FourierSolver:
                 for symbol, matrix in term.fourier_pieces(self.shape, n):
                     prior += coefficient * symbol[..., None, None] * matrix
         self._prior = to_quadruples(prior)[self._kept]  # (H, 4, n, n)
+        self._key = None
+        if colour.ndim == 2:  # per-frequency colour (dispersion) makes every patch differ
+            self._key = _matrix_key(self.shape, cfa, colour, data_weight, terms)
         self.identity = None
         self.set_identity(identity)
 
@@ -170,6 +237,12 @@ class FourierSolver:
             return
         if identity < 0:
             raise DataError(f"identity coefficient must be ≥ 0, got {identity}")
+        cached = None if self._key is None else _BLOCKS.get((*self._key, identity))
+        if cached is not None:
+            self._matrix, self._inverse = cached
+            self.identity = identity
+            self._inverse32 = None
+            return
         n = self.channels
         nq = self._prior.shape[0]
         matrix = np.broadcast_to(self._data, (nq, 4, n, 4, n)).astype(np.complex128)
@@ -195,6 +268,8 @@ class FourierSolver:
             )
         self.identity = identity
         self._inverse32: np.ndarray | None = None  # made on the first solve_single
+        if self._key is not None:
+            _BLOCKS.put((*self._key, identity), self._matrix, self._inverse)
 
     def _apply_quadruples(
         self, x: np.ndarray, inverse: bool, refine: bool = True, blocks: np.ndarray | None = None
