@@ -384,8 +384,9 @@ def solve(
         settle, and always with Φ, ADMM's result is finished by projected Newton, at
         several times the cost of the ADMM solve.
     direct : bool
-        For a non-negative L2-type problem with Φ: try the exact optimum by projected Newton
-        straight from the start (the initial estimate), with no ADMM, when at most
+        For a non-negative L2-type problem, try the exact optimum with no ADMM: without Φ
+        by the dual active-set method (as ``exact_nonneg``), with Φ by projected Newton
+        straight from the start (the initial estimate) when at most
         :data:`DIRECT_MAX_ZEROS` of its values are ≤ 0; ADMM as usual otherwise, or if
         the rounds do not settle. ``exact_nonneg`` does the same with σ > 0.
     settle : bool
@@ -409,15 +410,19 @@ def solve(
         exact = _QuadraticStep(problem, [], cg_rtol, cg_max_iter)
         if exact.exact and exact_nonneg:
             x_exact, report.polish = solve_periodic(problem, exact.solver)
-        elif not exact.exact and (problem.smoothness > 0 or direct):
-            # a unique optimum: projected Newton straight from the initial estimate (whose
-            # matrix K̃ is here, priors being quadratic), no ADMM before it, unless so many
-            # values start at zero that its dense k × k blocks cost more than ADMM
+        elif problem.smoothness > 0 or direct:
+            # a unique optimum, found without ADMM (no Φ: the dual active-set method;
+            # with Φ: projected Newton straight from the initial estimate, whose matrix K̃
+            # is here, priors being quadratic), unless so many values start at zero that
+            # the dense k × k blocks of either cost more than ADMM
             start = x0 if x0 is not None else initial_estimate(problem, solver=exact.solver)
             if int(np.count_nonzero(start <= 0)) <= DIRECT_MAX_ZEROS:
-                x_exact, report.polish = polish(
-                    problem, start, exact.apply, exact.solver, cg_rtol=DIRECT_CG_RTOL
-                )
+                if exact.exact:  # the start is the unconstrained optimum, clipped
+                    x_exact, report.polish = solve_periodic(problem, exact.solver)
+                else:
+                    x_exact, report.polish = polish(
+                        problem, start, exact.apply, exact.solver, cg_rtol=DIRECT_CG_RTOL
+                    )
         if report.polish is not None and report.polish.status == "optimal":
             report.converged, report.splits = True, ["nonneg"]
             return _finish(problem, x_exact, report, exact)

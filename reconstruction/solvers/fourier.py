@@ -36,8 +36,9 @@ from reconstruction.prior_terms import Term
 
 _QUADS = ((0, 0), (0, 1), (1, 0), (1, 1))  # s = (s_y, s_x), index 2 s_y + s_x
 
-BLOCK_CACHE_SIZE = 4
-"""Inverted block sets kept for reuse (:class:`_BlockCache`; a few MB to tens of MB each)."""
+BLOCK_CACHE_SIZE = 6
+"""Inverted block sets and impulse responses kept for reuse (:class:`_BlockCache`; a few MB
+to tens of MB each)."""
 
 SINGULAR_RESIDUAL = 1e-2
 """Largest relative residual ‖K K⁻¹ v − v‖ / ‖v‖ of the inverse on a random vector v before
@@ -104,7 +105,7 @@ def from_quadruples(grouped: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 
 
 class _BlockCache:
-    """The inverted blocks of recent solvers, by the matrix they invert.
+    """The inverted blocks (and impulse responses) of recent solvers, by their matrix.
 
     Without dispersion every patch of an image has the same matrix (same size, Bayer phase,
     colour matrix, priors and weights): the patches of one image then invert it once,
@@ -117,18 +118,18 @@ class _BlockCache:
         self._entries: OrderedDict[tuple, tuple[np.ndarray, np.ndarray]] = OrderedDict()
         self._lock = threading.Lock()
 
-    def get(self, key: tuple) -> tuple[np.ndarray, np.ndarray] | None:
+    def get(self, key: tuple) -> tuple[np.ndarray, ...] | None:
         with self._lock:
             entry = self._entries.get(key)
             if entry is not None:
                 self._entries.move_to_end(key)
             return entry
 
-    def put(self, key: tuple, matrix: np.ndarray, inverse: np.ndarray) -> None:
-        matrix.flags.writeable = False
-        inverse.flags.writeable = False
+    def put(self, key: tuple, *arrays: np.ndarray) -> None:
+        for array in arrays:
+            array.flags.writeable = False
         with self._lock:
-            self._entries[key] = (matrix, inverse)
+            self._entries[key] = arrays
             self._entries.move_to_end(key)
             while len(self._entries) > self.size:
                 self._entries.popitem(last=False)
@@ -304,8 +305,13 @@ class FourierSolver:
 
         ``g[p, q, j]`` is K⁻¹ applied to a unit impulse at pixel (p, q), band j. K is
         periodic with the 2×2 mosaic period, so the column of any impulse at (r, c) is
-        ``g[r % 2, c % 2, j]`` rolled by (r − r % 2, c − c % 2). (A view of one array.)
+        ``g[r % 2, c % 2, j]`` rolled by (r − r % 2, c − c % 2). (A read-only view of one
+        array, shared by the solvers of the same matrix without dispersion.)
         """
+        key = None if self._key is None else (*self._key, self.identity, "impulses")
+        cached = None if key is None else _BLOCKS.get(key)
+        if cached is not None:
+            return cached[0]
         rows, cols = self.shape
         n = self.channels
         # the impulses' spectra are known: exp(−2πi (k p / rows + l q / cols)) in band j
@@ -321,7 +327,10 @@ class FourierSolver:
         spectrum = np.einsum("htp,ij->htipj", phase, np.eye(n)).reshape(-1, 4 * n, 4 * n)
         out += self._inverse @ (spectrum - self._matrix @ out)
         columns = self._to_image(out.reshape(-1, 4, n, 4 * n))  # (rows, cols, n, 4n)
-        return np.moveaxis(columns.reshape(rows, cols, n, 2, 2, n), (3, 4, 5), (0, 1, 2))
+        impulses = np.moveaxis(columns.reshape(rows, cols, n, 2, 2, n), (3, 4, 5), (0, 1, 2))
+        if key is not None:
+            _BLOCKS.put(key, impulses)
+        return impulses
 
     def solve(self, b: np.ndarray, *, refine: bool = True) -> np.ndarray:
         """x with K x = b; `b` and x are (rows, cols, n) real.

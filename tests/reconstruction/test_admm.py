@@ -339,6 +339,30 @@ def test_direct_exact_solve_with_dispersion_and_smoothness(monkeypatch: pytest.M
     assert fallback.report.objective == default.report.objective
 
 
+def test_direct_exact_solve_without_dispersion(monkeypatch: pytest.MonkeyPatch) -> None:
+    """No Φ (a flat or undispersed patch) and σ = 1e-3: ``direct=True`` is the dual
+    active-set method, with no ADMM iteration, the same image as ``exact_nonneg``, and
+    no worse than a tight ADMM solve; with more zeros in the start than
+    :data:`DIRECT_MAX_ZEROS` it is plain ADMM again."""
+    import reconstruction.solvers.admm as admm
+
+    rng = np.random.default_rng(8)
+    a = ImageFormation((64, 64), "GBRG", normalised_colour()[None])
+    _, raw = noisy_raw(a, rng, noise=0.002)
+    p = Problem(a, raw, PRIORS["L2"], (4.7e-4,), True, smoothness=SUGGESTED_SMOOTHNESS)
+    direct = solve(p, direct=True)
+    exact = solve(p, exact_nonneg=True)
+    tight = solve(p, rtol=1e-9, max_iter=5000)
+    assert direct.report.iterations == 0 and direct.report.polish.status == "optimal"
+    assert direct.latent.min() >= 0 and kkt_violation(p, direct.latent) < 1e-5
+    np.testing.assert_array_equal(direct.latent, exact.latent)
+    assert direct.report.objective <= tight.report.objective * (1 + 1e-8)
+    monkeypatch.setattr(admm, "DIRECT_MAX_ZEROS", -1)
+    fallback = solve(p, direct=True)
+    assert fallback.report.polish is None and fallback.report.iterations > 0
+    assert fallback.report.objective == solve(p).report.objective
+
+
 @pytest.mark.parametrize("weight", [4.7e-4, 6.3e-3])
 @pytest.mark.parametrize("prior", ["L2", "Lap2"])
 @pytest.mark.parametrize("nonneg", [True, False])
