@@ -12,6 +12,7 @@ for Python, the flag for the command line (:meth:`OptionError.message`).
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, fields
 from functools import cached_property
@@ -59,21 +60,18 @@ class OptionError(ConfigError, DataError):
         super().__init__(self.message())
 
     def message(self, names: Mapping[str, str] | None = None) -> str:
-        """The message with every option called ``names[keyword]`` (default: its keyword)."""
-        return self.template.format_map(_Names(names or {}, self.option))
+        """The message with every option called ``names[keyword]`` (default: its keyword).
 
+        The template names options as ``{option}`` (the failing one) or ``{keyword}``; any
+        other braces (e.g. in a value it quotes) are left as they are.
+        """
+        names = names or {}
 
-class _Names(dict):
-    """``{option}`` → the failing option's name; ``{keyword}`` → that option's name."""
+        def name(match: re.Match) -> str:
+            key = self.option if match[1] == "option" else match[1]
+            return names.get(key, key)
 
-    def __init__(self, names: Mapping[str, str], option: str) -> None:
-        super().__init__()
-        self.names = names
-        self.option = option
-
-    def __missing__(self, key: str) -> str:
-        key = self.option if key == "option" else key
-        return self.names.get(key, key)
+        return _PLACEHOLDER.sub(name, self.template)
 
 
 def parse_weights(
@@ -440,3 +438,8 @@ def _whole(option: str, value: object, *, least: int, even: bool = False) -> Non
     if not ok or (even and value % 2):
         kind = "an even whole number" if even else "a whole number"
         raise OptionError(option, f"{{option}} is {value!r}; expected {kind} ≥ {least}")
+
+
+_PLACEHOLDER = re.compile(
+    r"\{(option|" + "|".join(f.name for f in fields(ReconstructOptions)) + r")\}"
+)

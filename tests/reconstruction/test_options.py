@@ -137,3 +137,10 @@ def test_the_stages_run_alone_give_the_job() -> None:
         "criterion": "fixed",
         "requested": list(weights),
     }
+
+
+def test_braces_in_a_quoted_value_survive_the_message() -> None:
+    with pytest.raises(OptionError) as caught:
+        ReconstructOptions(**BASE, prior="{weird}")
+    assert "unknown prior '{weird}'" in str(caught.value)
+    assert "unknown --prior '{weird}'" in caught.value.message(CLI_NAMES)
