@@ -26,6 +26,7 @@ from labkit.cfa import check_layout
 from labkit.errors import ConfigError, DataError
 from labkit.spectra import Spectra
 from reconstruction.image_formation import LatentSpace
+from reconstruction.operators.basis import KERNELS
 from reconstruction.operators.dispersion import INTERPOLATIONS
 from reconstruction.prior_terms import PRIORS, PriorTerm, prior_terms
 from reconstruction.problem import SUGGESTED_SMOOTHNESS
@@ -40,9 +41,6 @@ LATENTS = ("spectral", "colour")
 
 REFERENCES = ("mean-colour",)
 """Reference spectra of the §6.3 variant (None: the plain problem)."""
-
-KERNELS = ("gaussian", "sinc")
-"""Kernels of the spectral basis (:class:`~reconstruction.image_formation.LatentSpace`)."""
 
 
 class OptionError(ConfigError, DataError):
@@ -313,7 +311,7 @@ class ReconstructOptions:
                 f"give {count} weight(s)",
             )
         try:
-            parse_weights(self.weights, count)
+            self._parsed_weights  # noqa: B018  (parsed now: its errors name the option)
         except DataError as error:
             raise OptionError("weights", f"{{option}}: {error}") from None
 
@@ -343,6 +341,11 @@ class ReconstructOptions:
         if self.dispersion is None or isinstance(self.dispersion, DispersionModel):
             return self.dispersion
         return load_dispersion_model(self.dispersion)
+
+    @property
+    def solve_model(self) -> DispersionModel | None:
+        """The dispersion model inside the problem (None for §3.9.2's warp afterwards)."""
+        return self.model if self.correction == "model" else None
 
     @property
     def dispersion_source(self) -> str | None:
@@ -379,14 +382,18 @@ class ReconstructOptions:
     def l1_terms(self) -> bool:
         return any(t.norm == 1 for t in self.terms)
 
+    @cached_property
+    def _parsed_weights(self) -> tuple[str, tuple[float, ...] | None]:
+        return parse_weights(self.weights, len(self.terms))
+
     @property
     def criterion(self) -> str:
         """The weight criterion (``"fixed"`` for fixed weights)."""
-        return parse_weights(self.weights, len(self.terms))[0]
+        return self._parsed_weights[0]
 
     @property
     def fixed_weights(self) -> tuple[float, ...] | None:
-        return parse_weights(self.weights, len(self.terms))[1]
+        return self._parsed_weights[1]
 
     @property
     def direct(self) -> bool:
@@ -403,8 +410,6 @@ class ReconstructOptions:
 
     def check_image(self, shape: tuple[int, int], *, where: str = "the raw image") -> None:
         """The checks that need the raw image's size `shape` (rows, cols)."""
-        from reconstruction.reconstruct import check_dispersion_model
-
         check_dispersion_model(
             self.model, shape, self.latent, where=where, correction=self.correction
         )
@@ -424,6 +429,45 @@ class ReconstructOptions:
                 value = list(value)
             out[f.name] = value
         return out
+
+
+def check_dispersion_model(
+    model: DispersionModel | str | Path | None,
+    shape: tuple[int, int],
+    kind: str,
+    *,
+    where: str = "the dispersion model",
+    correction: str = "model",
+) -> DispersionModel | None:
+    """Load `model` (if a path) and check it suits a `kind` reconstruction of `shape` px.
+
+    Φ inside the problem (``correction="model"``) needs a ``to_reference`` model; warping
+    afterwards (``"warp"``) takes either direction.
+    """
+    if model is None:
+        return None
+    if not isinstance(model, DispersionModel):
+        model = load_dispersion_model(model)
+    if tuple(model.image_shape) != tuple(shape):
+        raise DataError(
+            f"{where} was calibrated for {model.image_shape[0]}×{model.image_shape[1]} px "
+            f"images but the raw image is {shape[0]}×{shape[1]} px; use a model calibrated "
+            "with this camera at this image size"
+        )
+    if correction == "model" and model.direction != "to_reference":
+        raise DataError(
+            f"{where} is a {model.direction} model; reconstruction needs to_reference: "
+            "recalibrate with `labkit calibrate dispersion --direction to_reference` (or "
+            "warp after reconstruction: correction='warp', --correction warp)"
+        )
+    wanted = "xylambda" if kind == "spectral" else "xy"
+    if model.variables != wanted:
+        names = {"xylambda": "spectral", "xy": "colour-channel"}
+        raise DataError(
+            f"{where} is a {names.get(model.variables, model.variables)} model; a {kind} "
+            f"reconstruction (--latent {kind}) needs a {names[wanted]} model"
+        )
+    return model
 
 
 def _choice(option: str, value: object, allowed: tuple[str, ...]) -> None:

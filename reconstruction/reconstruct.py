@@ -27,23 +27,14 @@ from typing import Any
 import numpy as np
 from scipy.optimize import nnls
 
-from calibration.dispersion_model import DispersionModel, load_dispersion_model
+from calibration.dispersion_model import DispersionModel
 from calibration.warp import correct_channels, correct_spectral
 from labkit.blas_threads import fixed_blas_threads
 from labkit.cfa import channel_index
 from labkit.errors import DataError
 from reconstruction.image_formation import LatentSpace, build_formation
 from reconstruction.operators import SpectralGradient
-
-# re-exported: their home before the options object existed
-from reconstruction.options import (  # noqa: F401
-    CORRECTIONS,
-    LATENTS,
-    REFERENCES,
-    OptionError,
-    ReconstructOptions,
-    parse_weights,
-)
+from reconstruction.options import ReconstructOptions
 from reconstruction.patches import (
     PatchOptions,
     SolverOptions,
@@ -157,45 +148,6 @@ def check_raw(raw: np.ndarray, *, where: str = "the raw image") -> np.ndarray:
             "(e.g. to counts or a fraction of saturation) before reconstruction"
         )
     return raw.astype(np.float64)
-
-
-def check_dispersion_model(
-    model: DispersionModel | str | Path | None,
-    shape: tuple[int, int],
-    kind: str,
-    *,
-    where: str = "the dispersion model",
-    correction: str = "model",
-) -> DispersionModel | None:
-    """Load `model` (if a path) and check it suits a `kind` reconstruction of `shape` px.
-
-    Φ inside the problem (``correction="model"``) needs a ``to_reference`` model; warping
-    afterwards (``"warp"``) takes either direction.
-    """
-    if model is None:
-        return None
-    if not isinstance(model, DispersionModel):
-        model = load_dispersion_model(model)
-    if tuple(model.image_shape) != tuple(shape):
-        raise DataError(
-            f"{where} was calibrated for {model.image_shape[0]}×{model.image_shape[1]} px "
-            f"images but the raw image is {shape[0]}×{shape[1]} px; use a model calibrated "
-            "with this camera at this image size"
-        )
-    if correction == "model" and model.direction != "to_reference":
-        raise DataError(
-            f"{where} is a {model.direction} model; reconstruction needs to_reference: "
-            "recalibrate with `labkit calibrate dispersion --direction to_reference` (or "
-            "warp after reconstruction: correction='warp', --correction warp)"
-        )
-    wanted = "xylambda" if kind == "spectral" else "xy"
-    if model.variables != wanted:
-        names = {"xylambda": "spectral", "xy": "colour-channel"}
-        raise DataError(
-            f"{where} is a {names.get(model.variables, model.variables)} model; a {kind} "
-            f"reconstruction (--latent {kind}) needs a {names[wanted]} model"
-        )
-    return model
 
 
 def mean_colour(raw: np.ndarray, cfa: str) -> np.ndarray:
@@ -335,11 +287,6 @@ class PreparedProblem:
     atol: float
     log: dict
 
-    @property
-    def solve_model(self) -> DispersionModel | None:
-        """The dispersion model inside the problem (None for §3.9.2's warp afterwards)."""
-        return self.options.model if self.options.correction == "model" else None
-
 
 def prepare_problem(
     raw: np.ndarray, options: ReconstructOptions, *, truth: np.ndarray | None = None
@@ -358,8 +305,7 @@ def prepare_problem(
         raise DataError("weights='auto:msec' needs the true spectral image (truth=...)")
     o.check_image(raw.shape)
     space = o.space
-    model = o.model
-    solve_model = model if o.correction == "model" else None
+    model, solve_model = o.model, o.solve_model
     reach = 0.0 if solve_model is None else max_dispersion(model, space, (0, 0), raw.shape)
     pad_px = o.pad_px
     if pad_px is None:
@@ -545,7 +491,7 @@ def solve_patches(
         cfa=o.cfa,
         latent=job.space,
         colour_gain=job.colour_gain,
-        model=job.solve_model,
+        model=job.options.solve_model,
         solver=solver,
         options=job.patches,
         scheduler=o.scheduler,

@@ -341,12 +341,6 @@ def _prepare(args: argparse.Namespace) -> _Job:
     return _Job(raw=raw, response_source=source, options=options)
 
 
-def _choice(value: str, option: str, allowed: tuple[str, ...]) -> str:
-    if value not in allowed:
-        raise ConfigError(f"{option} is {value!r}; use one of {', '.join(allowed)}")
-    return value
-
-
 def _scheduler(value: str) -> str:
     if value in SCHEDULERS:
         return value

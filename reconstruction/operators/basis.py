@@ -66,6 +66,9 @@ from labkit.errors import DataError
 from labkit.spectra import Spectra
 from reconstruction.operators._base import LinearOperator
 
+KERNELS = ("gaussian", "sinc")
+"""Kernels of the spectral basis B."""
+
 MAX_EXTRAPOLATION_NM = 500.0
 """Farthest a sample wavelength may lie beyond the outer band centres, nm."""
 
@@ -303,7 +306,7 @@ class SpectralBasis(LinearOperator):
     ) -> None:
         if len(shape) != 2 or min(shape) < 1:
             raise DataError(f"B needs an image shape (rows, cols) ≥ 1, got {shape}")
-        if kernel not in ("gaussian", "sinc"):
+        if kernel not in KERNELS:
             raise DataError(f"unknown kernel {kernel!r}; use 'gaussian' or 'sinc'")
         centres = _checked_grid(centres_nm, "band centres", 2)
         samples = _checked_grid(sample_nm, "sample wavelengths", 1)

@@ -11,9 +11,10 @@ from labkit.errors import DataError
 from labkit.spectra import camera_response
 from reconstruction.baselines import baseline
 from reconstruction.image_formation import ImageFormation
+from reconstruction.options import parse_weights
 from reconstruction.prior_terms import PRIORS
 from reconstruction.problem import Problem
-from reconstruction.reconstruct import parse_weights, reconstruct
+from reconstruction.reconstruct import reconstruct
 from reconstruction.solvers.admm import solve
 from reconstruction.weights import select_weights
 
