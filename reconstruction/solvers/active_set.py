@@ -274,7 +274,11 @@ def _most_negative(x: np.ndarray, candidates: np.ndarray, count: int) -> np.ndar
 
 @fixed_blas_threads
 def solve_periodic(
-    problem: Problem, solver: FourierSolver, *, max_rounds: int = MAX_PERIODIC_ROUNDS
+    problem: Problem,
+    solver: FourierSolver,
+    *,
+    max_rounds: int = MAX_PERIODIC_ROUNDS,
+    max_zeros: int | None = None,
 ) -> tuple[np.ndarray, PolishReport]:
     """The exact non-negative optimum of a problem without Φ, by active sets in the dual.
 
@@ -286,6 +290,9 @@ def solve_periodic(
         K itself (its inverse is exact).
     max_rounds : int
         Working-set rounds allowed.
+    max_zeros : int, optional
+        Give up at once (status ``"large"``) when more values of the unconstrained optimum
+        x̂ than this are ≤ 0.
 
     Returns
     -------
@@ -294,13 +301,17 @@ def solve_periodic(
         is ``"optimal"``.
     report : PolishReport
         Status ``"optimal"`` (KKT residual ≤ :data:`KKT_TOLERANCE`, checked with K), ``"cycled"``
-        (a working set came back), ``"large"`` (it grew past :data:`MAX_ACTIVE`), ``"rounds"``
+        (a working set came back), ``"large"`` (it grew past :data:`MAX_ACTIVE`, or x̂ has more
+        than `max_zeros` values ≤ 0), ``"rounds"``
         or ``"singular"``; on any of these the caller should fall back to ADMM and
         :func:`polish`. ``cg_iterations`` stays empty.
     """
     report = PolishReport()
     b = 2.0 * problem.formation.adjoint(problem.raw)
     unconstrained = solver.solve(b)
+    if max_zeros is not None and int(np.count_nonzero(unconstrained <= 0)) > max_zeros:
+        report.status = "large"
+        return np.maximum(unconstrained, 0.0), report
     tolerance = _ACTIVE_TOLERANCE * (float(np.abs(unconstrained).max()) or 1.0)
     working = _most_negative(unconstrained, unconstrained < -tolerance, ADD_BATCH)
     x = unconstrained

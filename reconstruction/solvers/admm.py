@@ -89,10 +89,11 @@ a flat valley of the objective (README, reproducible solves). Not at σ = 0, who
 stop is kept on purpose (:data:`DEFAULT_RTOL`), nor in solves with ``settle=False``."""
 STALL_FACTOR = 0.5
 DIRECT_MAX_ZEROS = 600
-"""Largest number of values at or below zero in the start for which a direct exact solve
-(``direct``, or ``exact_nonneg`` with spectral smoothness) skips ADMM: the projected-Newton
-rounds factorise a dense block over the values held at zero, which costs more than ADMM
-once they number in the thousands."""
+"""Largest number of values at or below zero in the start (without Φ: in the
+unconstrained optimum) for which a direct exact solve (``direct``, or ``exact_nonneg``
+with spectral smoothness and Φ) skips ADMM: the active-set methods factorise a dense block
+over the values held at zero, which costs more than ADMM once they number in the
+thousands."""
 DIRECT_CG_RTOL = 1e-6
 """CG tolerance of the projected-Newton rounds that replace ADMM for an exact solve with Φ
 and spectral smoothness (the KKT test, not this, decides when the optimum is reached)."""
@@ -408,21 +409,19 @@ def solve(
     start = None  # the initial estimate, once the direct attempt has made it
     if (exact_nonneg or direct) and problem.nonneg and not l1_splits:
         exact = _QuadraticStep(problem, [], cg_rtol, cg_max_iter)
-        if exact.exact and exact_nonneg:
-            x_exact, report.polish = solve_periodic(problem, exact.solver)
+        # a direct solve (no ADMM) gives up where so many values start at zero that the
+        # dense k × k blocks of the active-set methods cost more than ADMM
+        if exact.exact:  # no Φ: the dual active-set method, from one FFT solve
+            limit = None if exact_nonneg else DIRECT_MAX_ZEROS
+            x_exact, report.polish = solve_periodic(problem, exact.solver, max_zeros=limit)
         elif problem.smoothness > 0 or direct:
-            # a unique optimum, found without ADMM (no Φ: the dual active-set method;
-            # with Φ: projected Newton straight from the initial estimate, whose matrix K̃
-            # is here, priors being quadratic), unless so many values start at zero that
-            # the dense k × k blocks of either cost more than ADMM
+            # a unique optimum: projected Newton straight from the initial estimate, whose
+            # matrix K̃ is here, priors being quadratic
             start = x0 if x0 is not None else initial_estimate(problem, solver=exact.solver)
             if int(np.count_nonzero(start <= 0)) <= DIRECT_MAX_ZEROS:
-                if exact.exact:  # the start is the unconstrained optimum, clipped
-                    x_exact, report.polish = solve_periodic(problem, exact.solver)
-                else:
-                    x_exact, report.polish = polish(
-                        problem, start, exact.apply, exact.solver, cg_rtol=DIRECT_CG_RTOL
-                    )
+                x_exact, report.polish = polish(
+                    problem, start, exact.apply, exact.solver, cg_rtol=DIRECT_CG_RTOL
+                )
         if report.polish is not None and report.polish.status == "optimal":
             report.converged, report.splits = True, ["nonneg"]
             return _finish(problem, x_exact, report, exact)
