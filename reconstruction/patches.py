@@ -68,6 +68,7 @@ _FIELDS = (
     "active",
     "polish_rounds",
     "exact",
+    "formation_seconds",
 )
 
 
@@ -221,6 +222,7 @@ def solve_patch(
             phi_state = 3
         else:
             phi_state, use_model = 1, model
+    built = time.perf_counter()
     formation = build_formation(
         latent,
         shape,
@@ -232,6 +234,7 @@ def solve_patch(
         colour_gain=colour_gain,
         interpolation=solver.interpolation,
     )
+    record["formation_seconds"] = time.perf_counter() - built
     problem = Problem(
         formation, raw, solver.terms, solver.weights, solver.nonneg, smoothness=solver.smoothness
     )
@@ -245,7 +248,8 @@ def solve_patch(
         direct=solver.direct,
     )
     report = solution.report
-    cg = report.cg_iterations
+    # every CG solve: ADMM's quadratic steps and the active-set methods' restricted solves
+    cg = report.cg_iterations + ([] if report.polish is None else report.polish.cg_iterations)
     record.update(
         iterations=report.iterations,
         converged=float(report.converged),

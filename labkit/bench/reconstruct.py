@@ -35,7 +35,13 @@ import numpy as np
 
 from labkit.bench.harness import Measurement, Plot, Table, fit_exponent, peak_rss_mib
 from labkit.bench.plots import plot_scaling, plot_time_vs_error
-from labkit.bench.real_frames import MAIN_VARIANTS, comparison_table, real_measurements
+from labkit.bench.real_frames import (
+    MAIN_VARIANTS,
+    comparison_table,
+    patch_cost,
+    patch_cost_table,
+    real_measurements,
+)
 from labkit.rig import load_rig
 
 TARGET_S = 10.0
@@ -278,6 +284,7 @@ def _measurement(name, seconds, times, target, case, result, extra, peak=None) -
             "flat": log["patches"]["flat"],
             "iterations_median": log["patches"]["iterations_median"],
             "converged": log["patches"]["converged"],
+            "patch_cost": patch_cost(log["patch_records"]),
         },
     )
 
@@ -467,6 +474,7 @@ def bench_reconstruct(
         )
         + ".",
         comparison_table(real_main, simulated_main),
+        patch_cost_table(real_main, simulated_main),
         "Peak memory: the largest resident set so far of this process or a finished child; "
         "for the full-size case and the scaling sizes, that of the fresh process the "
         "reconstruction ran in (VmHWM), the simulation left out.",

@@ -10,7 +10,8 @@ with Bertsekas' projected Newton method: the active set S holds the values at ze
 gradient pushes outwards; the problem with ``x_S = 0`` is solved on the free values, and
 the step towards that solution is projected onto x ≥ 0 and shortened until the objective
 falls enough (Armijo). It stops when the KKT residual is below :data:`KKT_TOLERANCE`.
-The rounds locate S with a loose solve tolerance and switch to a tight one once S repeats.
+The rounds locate S with a loose solve tolerance and switch to a tight one once S repeats
+(or a loose solve has nothing left to do).
 Warm-started from ADMM, a few rounds suffice (figures in the README, how it works).
 
 Each round solves ``K_FF x_F = b_F`` on the free set F by conjugate gradients
@@ -207,7 +208,8 @@ def polish(
         if previous is not None and np.array_equal(active, previous):
             tolerance = cg_rtol
         if impulses is None and report.active:
-            impulses = solver.impulse_responses()
+            # consistent with the unrefined solves of the preconditioner (_Capacitance)
+            impulses = solver.impulse_responses(refine=False)
         pinned = active
         if report.active > MAX_ACTIVE:  # correct for the most strongly held values only
             order = np.argsort(np.where(active, gradient, -np.inf), axis=None)
@@ -220,14 +222,21 @@ def polish(
             report.status = "singular"
             return x, report
         free = ~active
-        result = conjugate_gradient(
-            lambda v, free=free: apply(v * free) * free,
-            b * free,
-            x0=x * free,
-            preconditioner=precondition,
-            rtol=tolerance,
-            max_iter=cg_max_iter,
-        )
+        start = x * free
+        while True:
+            result = conjugate_gradient(
+                lambda v, free=free: apply(v * free) * free,
+                b * free,
+                x0=start,
+                preconditioner=precondition,
+                rtol=tolerance,
+                max_iter=cg_max_iter,
+            )
+            if result.iterations or tolerance <= cg_rtol:
+                break
+            # the loose solve had nothing to do: the set is likely settled, so solve it
+            # tightly now rather than spend a round (factor, arc search) on a null step
+            tolerance, start = cg_rtol, result.x
         report.rounds += 1
         report.cg_iterations.append(result.iterations)
         direction = result.x * free - x

@@ -300,15 +300,18 @@ class FourierSolver:
         result = from_quadruples(full.reshape(-1, 4, *rest), self.shape)
         return scipy.fft.ifft2(result, axes=(0, 1), overwrite_x=True).real
 
-    def impulse_responses(self) -> np.ndarray:
+    def impulse_responses(self, *, refine: bool = True) -> np.ndarray:
         """Columns of K⁻¹ at the 4n impulses of one Bayer period, (2, 2, n, rows, cols, n).
 
         ``g[p, q, j]`` is K⁻¹ applied to a unit impulse at pixel (p, q), band j. K is
         periodic with the 2×2 mosaic period, so the column of any impulse at (r, c) is
         ``g[r % 2, c % 2, j]`` rolled by (r − r % 2, c − c % 2). (A read-only view of one
         array, shared by the solvers of the same matrix without dispersion.)
+        ``refine=False`` skips the step of iterative refinement, as :meth:`solve` does, for
+        a preconditioner built from ``solve(…, refine=False)``.
         """
-        key = None if self._key is None else (*self._key, self.identity, "impulses")
+        tag = "impulses" if refine else "impulses, unrefined"
+        key = None if self._key is None else (*self._key, self.identity, tag)
         cached = None if key is None else _BLOCKS.get(key)
         if cached is not None:
             return cached[0]
@@ -323,9 +326,9 @@ class FourierSolver:
         inverse = self._inverse.reshape(-1, 4, n, 4, n)
         out = np.einsum("hsitj,htp->hsipj", inverse, phase, optimize=True)
         out = out.reshape(-1, 4 * n, 4 * n)
-        # one step of iterative refinement against the impulses' spectra E = phase ⊗ I
-        spectrum = np.einsum("htp,ij->htipj", phase, np.eye(n)).reshape(-1, 4 * n, 4 * n)
-        out += self._inverse @ (spectrum - self._matrix @ out)
+        if refine:  # one step of iterative refinement against the impulses' spectra phase ⊗ I
+            spectrum = np.einsum("htp,ij->htipj", phase, np.eye(n)).reshape(-1, 4 * n, 4 * n)
+            out += self._inverse @ (spectrum - self._matrix @ out)
         columns = self._to_image(out.reshape(-1, 4, n, 4 * n))  # (rows, cols, n, 4n)
         impulses = np.moveaxis(columns.reshape(rows, cols, n, 2, 2, n), (3, 4, 5), (0, 1, 2))
         if key is not None:

@@ -101,7 +101,8 @@ def test_fourier_solver_half_quadruples_cover_every_frequency(
     """The solver inverts only one quadruple of each conjugate pair and fills the rest by
     symmetry: every image size (half-sizes odd or even, the 2×2 minimum), with a constant
     or a per-frequency (uniform shift) colour matrix, K x and K⁻¹ b match the spatial K
-    (1e-10 and 1e-8) and K times each impulse response is its impulse (1e-8)."""
+    (1e-10 and 1e-8) and K times each impulse response is its impulse (1e-8); unrefined,
+    they are the unrefined solves of the impulses (1e-12)."""
     rng = np.random.default_rng(11)
     model = spectral_model(ConstantField((0.7, -1.3), per_nm=True), shape=shape)
     a = build_formation(latent_space(), shape, "GBRG", model=model if shifted else None)
@@ -120,6 +121,9 @@ def test_fourier_solver_half_quadruples_cover_every_frequency(
         impulse = np.zeros(a.domain_shape)
         impulse[p, q, j] = 1.0
         assert np.abs(matrix(responses[p, q, j]) - impulse).max() < 1e-8
+        # unrefined, as the preconditioner's solve(refine=False) gives them
+        unrefined = solver.impulse_responses(refine=False)[p, q, j]
+        np.testing.assert_allclose(unrefined, solver.solve(impulse, refine=False), atol=1e-12)
 
 
 def test_mean_translation_operator_is_what_the_fourier_solver_inverts() -> None:
