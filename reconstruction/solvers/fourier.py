@@ -44,6 +44,11 @@ SINGULAR_RESIDUAL = 1e-2
 """Largest relative residual ‖K K⁻¹ v − v‖ / ‖v‖ of the inverse on a random vector v before
 the matrix is declared singular (well-posed systems: ≲ 1e-7 even with the 1e-9 ridge)."""
 
+REFINE_RESIDUAL = 1e-12
+"""That residual above which solves and impulse responses take a step of iterative
+refinement; below it the inverse is already accurate to about that, and the step (a third
+of a solve) would change nothing that matters."""
+
 
 def mask_coefficients(cfa: str) -> np.ndarray:
     """Fourier coefficients a[c, s] (3, 4) of the channel masks of a Bayer layout."""
@@ -93,15 +98,6 @@ def conjugate_quadruples(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray
     filled_rows = (4 * filled[:, None] + members).ravel()
     source_rows = (4 * position[partner[filled]][:, None] + (members ^ mask[filled, None])).ravel()
     return kept, filled_rows, source_rows
-
-
-def from_quadruples(grouped: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """Inverse of :func:`to_quadruples`."""
-    rows, cols = shape
-    rest = grouped.shape[2:]
-    spectrum = grouped.reshape(rows // 2, cols // 2, 2, 2, *rest)
-    spectrum = np.moveaxis(spectrum, (2, 3), (0, 2))
-    return spectrum.reshape(rows, cols, *rest)
 
 
 class _BlockCache:
@@ -212,6 +208,12 @@ class FourierSolver:
         # a real image's spectrum is conjugate-symmetric, and so is K: only about half the
         # quadruples are solved, the rest are their conjugates (about half the time)
         self._kept, self._filled_rows, self._source_rows = conjugate_quadruples(self.shape)
+        # where the kept quadruples' members and the conjugate-filled rows sit in the
+        # spectrum's own (rows · cols) order: one gather and two scatters per solve instead
+        # of regrouping whole spectra
+        natural = to_quadruples(np.arange(rows * cols).reshape(rows, cols))
+        self._gather = natural[self._kept].ravel()
+        self._filled_at = natural.ravel()[self._filled_rows]
         if colour.ndim == 2:
             data = np.einsum("ci,cst,cj->sitj", colour, a_xor, colour)[None]
         else:
@@ -240,7 +242,8 @@ class FourierSolver:
             raise DataError(f"identity coefficient must be ≥ 0, got {identity}")
         cached = None if self._key is None else _BLOCKS.get((*self._key, identity))
         if cached is not None:
-            self._matrix, self._inverse = cached
+            self._matrix, self._inverse, residual = cached
+            self._refine = bool(residual > REFINE_RESIDUAL)
             self.identity = identity
             self._inverse32 = None
             return
@@ -267,10 +270,11 @@ class FourierSolver:
                 "undetermined (a Bayer mosaic observes 4 of the 4n per frequency quadruple); "
                 "give identity > 0 (e.g. a ridge of 1e-9 × the data term's scale)"
             )
+        self._refine = worst > REFINE_RESIDUAL
         self.identity = identity
         self._inverse32: np.ndarray | None = None  # made on the first solve_single
         if self._key is not None:
-            _BLOCKS.put((*self._key, identity), self._matrix, self._inverse)
+            _BLOCKS.put((*self._key, identity), self._matrix, self._inverse, np.array(worst))
 
     def _apply_quadruples(
         self, x: np.ndarray, inverse: bool, refine: bool = True, blocks: np.ndarray | None = None
@@ -278,13 +282,13 @@ class FourierSolver:
         """K x or K⁻¹ x through the per-quadruple blocks; `blocks` replaces K⁻¹'s (no
         refinement then), and x's precision carries through the FFTs."""
         n = self.channels
-        spectrum = to_quadruples(scipy.fft.fft2(x, axes=(0, 1)))[self._kept]
-        spectrum = spectrum.reshape(-1, 4 * n, 1)
+        spectrum = scipy.fft.fft2(x, axes=(0, 1)).reshape(-1, n)
+        spectrum = spectrum[self._gather].reshape(-1, 4 * n, 1)
         if blocks is not None:
             out = blocks @ spectrum
         elif inverse:
             out = self._inverse @ spectrum
-            if refine:  # one step of iterative refinement: the ridge alone can leave cond ≈ 1e9
+            if refine and self._refine:  # the ridge alone can leave cond ≈ 1e9
                 out += self._inverse @ (spectrum - self._matrix @ out)
         else:
             out = self._matrix @ spectrum
@@ -294,10 +298,10 @@ class FourierSolver:
         """Real image (rows, cols, …) from the kept quadruples' spectrum (H, 4, …)."""
         rest = kept.shape[2:]
         compact = kept.reshape(-1, *rest)
-        full = np.empty((self._filled_rows.size + compact.shape[0], *rest), dtype=kept.dtype)
-        full.reshape(-1, 4, *rest)[self._kept] = kept
-        full[self._filled_rows] = compact[self._source_rows].conj()
-        result = from_quadruples(full.reshape(-1, 4, *rest), self.shape)
+        full = np.empty((self.shape[0] * self.shape[1], *rest), dtype=kept.dtype)
+        full[self._gather] = compact
+        full[self._filled_at] = compact[self._source_rows].conj()
+        result = full.reshape(*self.shape, *rest)
         return scipy.fft.ifft2(result, axes=(0, 1), overwrite_x=True).real
 
     def impulse_responses(self, *, refine: bool = True) -> np.ndarray:
@@ -307,9 +311,10 @@ class FourierSolver:
         periodic with the 2×2 mosaic period, so the column of any impulse at (r, c) is
         ``g[r % 2, c % 2, j]`` rolled by (r − r % 2, c − c % 2). (A read-only view of one
         array, shared by the solvers of the same matrix without dispersion.)
-        ``refine=False`` skips the step of iterative refinement, as :meth:`solve` does, for
-        a preconditioner built from ``solve(…, refine=False)``.
+        Refined as :meth:`solve` refines; ``refine=False`` never, for a preconditioner built
+        from ``solve(…, refine=False)``.
         """
+        refine = refine and self._refine
         tag = "impulses" if refine else "impulses, unrefined"
         key = None if self._key is None else (*self._key, self.identity, tag)
         cached = None if key is None else _BLOCKS.get(key)
@@ -338,7 +343,8 @@ class FourierSolver:
     def solve(self, b: np.ndarray, *, refine: bool = True) -> np.ndarray:
         """x with K x = b; `b` and x are (rows, cols, n) real.
 
-        ``refine=False`` skips the step of iterative refinement (a third of the cost),
+        A step of iterative refinement follows where the inverse is not accurate to
+        :data:`REFINE_RESIDUAL`; ``refine=False`` skips it always (a third of the cost),
         for use as a preconditioner, where the solve is approximate anyway.
         """
         return self._apply_quadruples(np.asarray(b, dtype=np.float64), inverse=True, refine=refine)

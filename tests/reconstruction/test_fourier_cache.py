@@ -33,7 +33,13 @@ def test_the_same_matrix_is_inverted_once_and_solves_alike() -> None:
     fourier._BLOCKS.clear()
     fresh = _solver()
     assert fresh._inverse is not first._inverse
+    assert second._refine == fresh._refine  # the cache keeps whether solves refine
     np.testing.assert_array_equal(second.solve(b), fresh.solve(b))
+    for identity in (1e-12, 1.0):  # refining and not
+        fourier._BLOCKS.clear()
+        fresh, cached = _solver(identity=identity), _solver(identity=identity)
+        assert cached._inverse is fresh._inverse and cached._refine == fresh._refine
+    assert fresh._refine != _solver(identity=1e-12)._refine
 
 
 @pytest.mark.parametrize(
