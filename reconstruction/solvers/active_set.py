@@ -110,16 +110,17 @@ def inverse_block(
     (r, c, j) is the impulse response of (r % 2, c % 2, j) rolled by the even part of (r, c).
     """
     rows, cols = shape
+    n = impulses.shape[2]
     r, c, j = (v.astype(np.intp) for v in index)
     p, q = r % 2, c % 2
-    block = impulses[
-        p[None, :],
-        q[None, :],
-        j[None, :],
-        (r[:, None] - r[None, :] + p[None, :]) % rows,
-        (c[:, None] - c[None, :] + q[None, :]) % cols,
-        j[:, None],
-    ]
+    # flat offsets into the contiguous (2, 2, n, rows, cols, n) array: one take, not a
+    # six-way fancy index
+    column = ((2 * p + q) * n + j) * (rows * cols * n)
+    pixel = ((r[:, None] - r[None, :] + p[None, :]) % rows) * cols
+    pixel += (c[:, None] - c[None, :] + q[None, :]) % cols
+    pixel *= n
+    pixel += j[:, None] + column[None, :]
+    block = np.take(np.ascontiguousarray(impulses).ravel(), pixel)
     return 0.5 * (block + block.T)
 
 

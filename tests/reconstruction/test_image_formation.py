@@ -13,6 +13,7 @@ from labkit.errors import DataError
 from reconstruction.image_formation import ImageFormation, build_formation
 from reconstruction.operators import dot_test
 from reconstruction.prior_terms import PRIORS, PriorTerm, SmoothnessTerm
+from reconstruction.solvers.active_set import inverse_block
 from reconstruction.solvers.fourier import REFINE_RESIDUAL, FourierSolver
 
 SHAPE = (40, 60)
@@ -124,6 +125,30 @@ def test_fourier_solver_half_quadruples_cover_every_frequency(
         # unrefined, as the preconditioner's solve(refine=False) gives them
         unrefined = solver.impulse_responses(refine=False)[p, q, j]
         np.testing.assert_allclose(unrefined, solver.solve(impulse, refine=False), atol=1e-12)
+
+
+def test_inverse_block_gathers_the_columns_of_the_inverse() -> None:
+    """``inverse_block`` at k values is the (k × k) block of K̃⁻¹: each column the solve of
+    a unit impulse at that value, read at the k values (1e-12), every Bayer phase and band
+    represented, for a patch with a per-frequency (shifted) colour matrix."""
+    rng = np.random.default_rng(4)
+    shape = (10, 8)
+    model = spectral_model(ConstantField((0.7, -1.3), per_nm=True), shape=shape)
+    a = build_formation(latent_space(), shape, "GBRG", model=model)
+    solver = FourierSolver(
+        shape, "GBRG", a.fourier_colour(), terms=[(0.1, PRIORS["L2"][0])], identity=1e-2
+    )
+    flat = rng.choice(int(np.prod(a.domain_shape)), size=24, replace=False)
+    index = np.unravel_index(flat, a.domain_shape)
+    assert len(set(zip(index[0] % 2, index[1] % 2, strict=True))) == 4
+    columns = []
+    for value in flat:
+        impulse = np.zeros(a.domain_shape)
+        impulse.ravel()[value] = 1.0
+        columns.append(solver.solve(impulse, refine=False)[index])
+    expected = np.stack(columns, axis=1)
+    block = inverse_block(solver.impulse_responses(refine=False), index, shape)
+    np.testing.assert_allclose(block, 0.5 * (expected + expected.T), atol=1e-12)
 
 
 def test_fourier_solver_refines_only_an_inaccurate_inverse() -> None:
