@@ -207,13 +207,13 @@ class FourierSolver:
         a_xor = a[:, xor]  # (3, 4, 4)
         # a real image's spectrum is conjugate-symmetric, and so is K: only about half the
         # quadruples are solved, the rest are their conjugates (about half the time)
-        self._kept, self._filled_rows, self._source_rows = conjugate_quadruples(self.shape)
+        self._kept, filled_rows, self._source_rows = conjugate_quadruples(self.shape)
         # where the kept quadruples' members and the conjugate-filled rows sit in the
         # spectrum's own (rows · cols) order: one gather and two scatters per solve instead
         # of regrouping whole spectra
         natural = to_quadruples(np.arange(rows * cols).reshape(rows, cols))
         self._gather = natural[self._kept].ravel()
-        self._filled_at = natural.ravel()[self._filled_rows]
+        self._filled_at = natural.ravel()[filled_rows]
         if colour.ndim == 2:
             data = np.einsum("ci,cst,cj->sitj", colour, a_xor, colour)[None]
         else:
@@ -243,7 +243,7 @@ class FourierSolver:
         cached = None if self._key is None else _BLOCKS.get((*self._key, identity))
         if cached is not None:
             self._matrix, self._inverse, residual = cached
-            self._refine = bool(residual > REFINE_RESIDUAL)
+            self._inverse_residual = float(residual)
             self.identity = identity
             self._inverse32 = None
             return
@@ -270,11 +270,16 @@ class FourierSolver:
                 "undetermined (a Bayer mosaic observes 4 of the 4n per frequency quadruple); "
                 "give identity > 0 (e.g. a ridge of 1e-9 × the data term's scale)"
             )
-        self._refine = worst > REFINE_RESIDUAL
+        self._inverse_residual = worst
         self.identity = identity
         self._inverse32: np.ndarray | None = None  # made on the first solve_single
         if self._key is not None:
             _BLOCKS.put((*self._key, identity), self._matrix, self._inverse, np.array(worst))
+
+    @property
+    def _refine(self) -> bool:
+        """Whether solves take a step of iterative refinement (:data:`REFINE_RESIDUAL`)."""
+        return self._inverse_residual > REFINE_RESIDUAL
 
     def _apply_quadruples(
         self, x: np.ndarray, inverse: bool, refine: bool = True, blocks: np.ndarray | None = None
