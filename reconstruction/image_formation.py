@@ -293,7 +293,11 @@ class ImageFormation(LinearOperator):
         per_row = np.bincount(pairs // npx, minlength=npx) * n
         indptr = np.concatenate([[0], np.cumsum(per_row)])
         indices = ((pairs % npx)[:, None] * n + np.arange(n)).ravel()
-        return sp.csr_matrix((values.ravel(), indices, indptr), shape=(npx, npx * n))
+        matrix = sp.csr_matrix((values.ravel(), indices, indptr), shape=(npx, npx * n))
+        # a colour matrix with zero columns (a band-centre response: each sample sees only
+        # its own band) leaves stored zeros that every product would still read
+        matrix.eliminate_zeros()
+        return matrix
 
     def _forward(self, x: np.ndarray) -> np.ndarray:
         x = x.astype(np.float64, copy=False)

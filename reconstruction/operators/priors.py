@@ -63,10 +63,45 @@ def _check_shape(shape: tuple[int, ...], what: str, min_channels: int = 1) -> tu
     return shape
 
 
+def _along(axis: int, ndim: int, part: slice) -> tuple[slice, ...]:
+    index = [slice(None)] * ndim
+    index[axis] = part
+    return tuple(index)
+
+
+def _periodic_difference(u: np.ndarray, axis: int, out: np.ndarray, sign: int) -> np.ndarray:
+    """``out = roll(u, -sign) − u`` along `axis`, by slices (np.roll copies the whole array)."""
+    head, tail = slice(None, -1), slice(1, None)
+    first, last = slice(None, 1), slice(-1, None)
+    if sign > 0:  # u[i+1] − u[i]
+        np.subtract(
+            u[_along(axis, u.ndim, tail)],
+            u[_along(axis, u.ndim, head)],
+            out=out[_along(axis, u.ndim, head)],
+        )
+        np.subtract(
+            u[_along(axis, u.ndim, first)],
+            u[_along(axis, u.ndim, last)],
+            out=out[_along(axis, u.ndim, last)],
+        )
+    else:  # u[i−1] − u[i]
+        np.subtract(
+            u[_along(axis, u.ndim, head)],
+            u[_along(axis, u.ndim, tail)],
+            out=out[_along(axis, u.ndim, tail)],
+        )
+        np.subtract(
+            u[_along(axis, u.ndim, last)],
+            u[_along(axis, u.ndim, first)],
+            out=out[_along(axis, u.ndim, first)],
+        )
+    return out
+
+
 def difference(u: np.ndarray, axis: int, boundary: str) -> np.ndarray:
     """Forward difference ``u[i+1] − u[i]`` along `axis` (same shape as `u`)."""
     if boundary == "periodic":
-        return np.roll(u, -1, axis=axis) - u
+        return _periodic_difference(u, axis, np.empty_like(u), 1)
     out = np.zeros_like(u)
     inner = [slice(None)] * u.ndim
     inner[axis] = slice(0, -1)
@@ -77,7 +112,7 @@ def difference(u: np.ndarray, axis: int, boundary: str) -> np.ndarray:
 def difference_adjoint(v: np.ndarray, axis: int, boundary: str) -> np.ndarray:
     """Adjoint of :func:`difference`: ``v[i−1] − v[i]`` with the boundary's end terms."""
     if boundary == "periodic":
-        return np.roll(v, 1, axis=axis) - v
+        return _periodic_difference(v, axis, np.empty_like(v), -1)
     n = v.shape[axis]
     kept = np.take(v, np.arange(n - 1), axis=axis)  # the far-edge difference is always 0
     zero = np.zeros_like(np.take(v, [0], axis=axis))
@@ -110,12 +145,23 @@ class _SpatialDifference(LinearOperator):
         return np.stack([sx, sy], axis=-1)
 
     def _gradient(self, u: np.ndarray) -> np.ndarray:
-        return np.stack([difference(u, 1, self.boundary), difference(u, 0, self.boundary)], axis=-1)
+        if self.boundary != "periodic":
+            return np.stack(
+                [difference(u, 1, self.boundary), difference(u, 0, self.boundary)], axis=-1
+            )
+        out = np.empty((*u.shape, 2), dtype=np.result_type(u))
+        _periodic_difference(u, 1, out[..., 0], 1)
+        _periodic_difference(u, 0, out[..., 1], 1)
+        return out
 
     def _gradient_adjoint(self, g: np.ndarray) -> np.ndarray:
-        return difference_adjoint(g[..., 0], 1, self.boundary) + difference_adjoint(
-            g[..., 1], 0, self.boundary
-        )
+        if self.boundary != "periodic":
+            return difference_adjoint(g[..., 0], 1, self.boundary) + difference_adjoint(
+                g[..., 1], 0, self.boundary
+            )
+        out = _periodic_difference(g[..., 0], 1, np.empty(g.shape[:-1], g.dtype), -1)
+        out += _periodic_difference(g[..., 1], 0, np.empty(g.shape[:-1], g.dtype), -1)
+        return out
 
 
 class Gradient(_SpatialDifference):

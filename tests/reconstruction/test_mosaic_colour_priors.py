@@ -190,6 +190,30 @@ def test_gradient_of_a_ramp():
     np.testing.assert_array_equal(gn[-1, :, :, 1], 0.0)
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_periodic_differences_are_rolls(rng, dtype):
+    """Forward and adjoint periodic differences along every axis equal their np.roll
+    definitions exactly, in the input's precision, and so do the gradient and its adjoint."""
+    from reconstruction.operators.priors import difference, difference_adjoint
+
+    u = rng.normal(size=(5, 6, 3)).astype(dtype)
+    for axis in range(u.ndim):
+        forward = difference(u, axis, "periodic")
+        assert forward.dtype == dtype
+        np.testing.assert_array_equal(forward, np.roll(u, -1, axis=axis) - u)
+        np.testing.assert_array_equal(
+            difference_adjoint(u, axis, "periodic"), np.roll(u, 1, axis=axis) - u
+        )
+    gradient = Gradient(u.shape)
+    expected = np.stack([np.roll(u, -1, axis=1) - u, np.roll(u, -1, axis=0) - u], axis=-1)
+    np.testing.assert_array_equal(gradient.forward(u), expected)
+    g = rng.normal(size=(*u.shape, 2)).astype(dtype)
+    adjoint = (np.roll(g[..., 0], 1, axis=1) - g[..., 0]) + (
+        np.roll(g[..., 1], 1, axis=0) - g[..., 1]
+    )
+    np.testing.assert_array_equal(gradient.adjoint(g), adjoint)
+
+
 @pytest.mark.parametrize("boundary", ["periodic", "neumann"])
 def test_laplacian_of_a_quadratic(boundary):
     rows, cols = 6, 8
