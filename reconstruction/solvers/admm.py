@@ -546,19 +546,19 @@ def solve(
 class _Anderson:
     """Type-II Anderson acceleration of a fixed-point map y ↦ g(y) (Walker & Ni 2011).
 
-    With memory m the next iterate is ``g(y) − (ΔY + ΔF) γ``, γ the least-squares fit
-    of the newest residual f = g(y) − y by the last m residual differences ΔF. An
-    extrapolation whose residual comes out more than :data:`ANDERSON_SAFEGUARD`-fold
-    above the best so far is rejected: the iteration goes on from the plain step of the
-    point it was extrapolated from, and the memory restarts. (Keeping it instead, where
-    the residual differences had become nearly collinear near convergence, threw the
-    objective up by orders of magnitude and cost ADMM many iterations to recover; figures
-    in the README, how it works.)
+    With memory m the next iterate is ``g(y) − ΔG γ``, γ the least-squares fit of the
+    newest residual f = g(y) − y by the last m residual differences ΔF, and ΔG the
+    matching differences of g (ΔY + ΔF). An extrapolation whose residual comes out more
+    than :data:`ANDERSON_SAFEGUARD`-fold above the best so far is rejected: the iteration
+    goes on from the plain step of the point it was extrapolated from, and the memory
+    restarts. (Keeping it instead, where the residual differences had become nearly
+    collinear near convergence, threw the objective up by orders of magnitude and cost
+    ADMM many iterations to recover; figures in the README, how it works.)
     """
 
     def __init__(self, memory: int) -> None:
         self.memory = memory
-        self._d_states: np.ndarray | None = None  # (memory, size) ring buffers of differences
+        self._d_mapped: np.ndarray | None = None  # (memory, size) ring buffers of ΔG, ΔF
         self._d_residuals: np.ndarray | None = None
         self._gram = np.zeros((memory, memory))  # ΔFᵀΔF, updated one column at a time
         self.reset()
@@ -566,22 +566,23 @@ class _Anderson:
     def reset(self) -> None:
         self.count = 0  # stored differences
         self.slot = 0  # where the next one goes
-        self.last: tuple[np.ndarray, np.ndarray] | None = None
+        self.last: tuple[np.ndarray, np.ndarray] | None = None  # the last (g(y), f)
         self.best = np.inf
         self.accepted = 0
         self.fallback: np.ndarray | None = None  # the plain step an extrapolation replaced
 
-    def _store(self, d_state: np.ndarray, d_residual: np.ndarray) -> None:
-        if self._d_states is None or self._d_states.shape[1] != d_state.size:
-            self._d_states = np.empty((self.memory, d_state.size))
-            self._d_residuals = np.empty((self.memory, d_state.size))
-        self._d_states[self.slot] = d_state
-        self._d_residuals[self.slot] = d_residual
+    def _store(self, mapped: np.ndarray, residual: np.ndarray) -> None:
+        if self._d_mapped is None or self._d_mapped.shape[1] != mapped.size:
+            self._d_mapped = np.empty((self.memory, mapped.size))
+            self._d_residuals = np.empty((self.memory, mapped.size))
+        slot = self.slot
+        np.subtract(mapped, self.last[0], out=self._d_mapped[slot])
+        d_residual = np.subtract(residual, self.last[1], out=self._d_residuals[slot])
         self.count = min(self.count + 1, self.memory)
         products = self._d_residuals[: self.count] @ d_residual
-        self._gram[self.slot, : self.count] = products
-        self._gram[: self.count, self.slot] = products
-        self.slot = (self.slot + 1) % self.memory
+        self._gram[slot, : self.count] = products
+        self._gram[: self.count, slot] = products
+        self.slot = (slot + 1) % self.memory
 
     def step(self, state: np.ndarray, mapped: np.ndarray) -> np.ndarray:
         self.accepted = 0
@@ -596,22 +597,21 @@ class _Anderson:
                 return fallback
         self.best = min(self.best, norm)
         if self.last is not None:
-            self._store(state - self.last[0], residual - self.last[1])
-        self.last = (state, residual)
+            self._store(mapped, residual)
+        self.last = (mapped, residual)
         if self.count == 0:
             return mapped
         m = self.count
-        d_residuals, d_states = self._d_residuals[:m], self._d_states[:m]
         gram = self._gram[:m, :m]
         scale = np.sqrt(np.diag(gram))
         if not np.all(scale > 0):
             self.reset()
             return mapped
         normalised = gram / np.outer(scale, scale) + 1e-10 * np.eye(m)
-        gamma = np.linalg.solve(normalised, (d_residuals @ residual) / scale) / scale
+        gamma = np.linalg.solve(normalised, (self._d_residuals[:m] @ residual) / scale) / scale
         self.accepted = 1
         self.fallback = mapped
-        return mapped - gamma @ d_states - gamma @ d_residuals
+        return mapped - gamma @ self._d_mapped[:m]
 
 
 def _unpack(vector: np.ndarray, splits: list[_Split]) -> None:
