@@ -274,6 +274,9 @@ class ImageFormation(LinearOperator):
         npx = int(np.prod(self.domain_shape[:2]))
         n = self.domain_shape[2]
         channel = self.channel_index.ravel()
+        bands = _own_bands(self.colour_matrices)
+        if bands is not None:
+            return self._combined_per_band(matrices, bands)
         rows, cols, weights, columns = [], [], [], []
         for j, matrix in enumerate(matrices):
             counts = np.diff(matrix.indptr)
@@ -298,6 +301,28 @@ class ImageFormation(LinearOperator):
         # its own band) leaves stored zeros that every product would still read
         matrix.eliminate_zeros()
         return matrix
+
+    def _combined_per_band(self, matrices: list[sp.csr_matrix], bands: np.ndarray) -> sp.csr_matrix:
+        """:meth:`_combined` where sample j sees band ``bands[j]`` alone (a band-centre
+        response): each Φ_j, scaled per raw pixel by its colour, fills its band's columns,
+        which no other sample shares, so the sum is a merge with no sort and no products
+        to add up (the same matrix, to the bit, as the general route)."""
+        npx = int(np.prod(self.domain_shape[:2]))
+        n = self.domain_shape[2]
+        channel = self.channel_index.ravel()
+        total = None
+        for j, matrix in enumerate(matrices):
+            band = int(bands[j])
+            if not matrix.has_canonical_format:  # sorted, unique columns per row
+                matrix = matrix.copy()
+                matrix.sum_duplicates()
+            colour = self.colour_matrices[j][channel, band]
+            values = matrix.data * np.repeat(colour, np.diff(matrix.indptr))
+            columns = matrix.indices.astype(np.int64) * n + band
+            part = sp.csr_matrix((values, columns, matrix.indptr), shape=(npx, npx * n))
+            part.eliminate_zeros()
+            total = part if total is None else total + part
+        return total
 
     def _forward(self, x: np.ndarray) -> np.ndarray:
         x = x.astype(np.float64, copy=False)
@@ -369,6 +394,15 @@ def _translation_symbol(
         return sum(w * phase ** (whole + o) for o, w in zip(offsets, weights, strict=True))
 
     return axis(dy, rows)[:, None] * axis(dx, cols)[None, :]
+
+
+def _own_bands(colour_matrices: np.ndarray) -> np.ndarray | None:
+    """The one band each sample's colour matrix (J, 3, n) sees, when every sample sees
+    exactly one and no two the same band; else None."""
+    seen = np.any(colour_matrices != 0, axis=1)  # (J, n)
+    if not np.all(seen.sum(axis=1) == 1) or np.any(seen.sum(axis=0) > 1):
+        return None
+    return np.argmax(seen, axis=1)
 
 
 def build_formation(
