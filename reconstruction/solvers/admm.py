@@ -213,6 +213,7 @@ class _QuadraticStep:
         self._curvature = data_curvature(problem)
         self.cg_iterations: list[int] = []
         self.cg_residual = 0.0
+        self._last: tuple[np.ndarray, np.ndarray] | None = None  # (x, K x) of the last CG solve
         self._build()
 
     def _coefficients(self) -> tuple[list[tuple[float, int]], float]:
@@ -239,6 +240,7 @@ class _QuadraticStep:
 
     def refresh(self) -> None:
         """Re-invert after a penalty change."""
+        self._last = None  # K changed
         terms, identity = self._coefficients()
         if terms != self.terms:
             self._build()
@@ -270,6 +272,8 @@ class _QuadraticStep:
         rtol = self.cg_rtol
         if rhs_norm > 0:
             rtol = max(min(rtol, atol / rhs_norm), CG_RTOL_FLOOR)
+        # ADMM starts each solve from the last one's x, whose K x CG has kept up to date
+        known = self._last is not None and x0 is self._last[0]
         result = conjugate_gradient(
             self.apply,
             rhs,
@@ -277,7 +281,10 @@ class _QuadraticStep:
             preconditioner=self._precondition,
             rtol=rtol,
             max_iter=self.cg_max_iter,
+            product0=self._last[1] if known else None,
+            track_product=True,
         )
+        self._last = (result.x, result.product)
         self.cg_iterations.append(result.iterations)
         self.cg_residual = max(self.cg_residual, result.relative_residual)
         return result.x

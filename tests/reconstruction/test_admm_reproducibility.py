@@ -63,19 +63,20 @@ def test_warm_and_cold_starts_agree_under_rounding(smoothness: float) -> None:
 
 
 def test_a_warm_start_is_cheaper_than_a_cold_one() -> None:
-    """At the default tolerance the initial estimate saves ADMM iterations and ends no
-    higher (measured at 1 and 2 threads and perturbed: σ = 0 7 against 17 iterations,
-    7.3e-3 against 8.2e-3 above the optimum; σ = 1e-3 173 against 200, 1.3e-5 against
-    1.9e-5 to 5.4e-5, 197 to 200 iterations from zeros across the runs)."""
+    """At the default tolerance the initial estimate saves ADMM iterations (measured at 1
+    and 2 threads and perturbed: σ = 0 7 against 17; σ = 1e-3 173 against 183–218). At
+    σ = 0 it also ends lower (7.3e-3 against 8.2e-3 above the optimum in every run); at
+    σ = 1e-3 both end within the promised 1e-4, where which is lower is rounding's choice
+    (warm 1.3e-5, cold 1.2e-5 to 6.7e-5 across runs and rounding-level code changes)."""
     for smoothness, margin in ((0.0, 1.5), (SUGGESTED_SMOOTHNESS, 1.0)):
         p = dataclasses.replace(shifted_nonneg_problem(), smoothness=smoothness)
         warm = stability_row("warm", p)
         cold = stability_row("cold", p, x0=np.zeros(p.shape))
         assert max(r.iterations for r in warm.runs) * margin < min(r.iterations for r in cold.runs)
-        assert warm.max_gap < min(r.gap for r in cold.runs)
-        assert warm.max_gap < (1e-4 if smoothness > 0 else 1e-2)
         if smoothness > 0:
-            assert cold.max_gap < 1e-4
+            assert warm.max_gap < 1e-4 and cold.max_gap < 1e-4
+        else:
+            assert warm.max_gap < min(r.gap for r in cold.runs) < 1e-2
 
 
 def test_with_smoothness_the_solve_waits_for_the_objective_to_settle() -> None:
