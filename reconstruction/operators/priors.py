@@ -73,28 +73,14 @@ def _periodic_difference(u: np.ndarray, axis: int, out: np.ndarray, sign: int) -
     """``out = roll(u, -sign) − u`` along `axis`, by slices (np.roll copies the whole array)."""
     head, tail = slice(None, -1), slice(1, None)
     first, last = slice(None, 1), slice(-1, None)
+    # (source, target): out[target] = u[source] − u[target], the inner run and the wrap
     if sign > 0:  # u[i+1] − u[i]
-        np.subtract(
-            u[_along(axis, u.ndim, tail)],
-            u[_along(axis, u.ndim, head)],
-            out=out[_along(axis, u.ndim, head)],
-        )
-        np.subtract(
-            u[_along(axis, u.ndim, first)],
-            u[_along(axis, u.ndim, last)],
-            out=out[_along(axis, u.ndim, last)],
-        )
+        pairs = ((tail, head), (first, last))
     else:  # u[i−1] − u[i]
-        np.subtract(
-            u[_along(axis, u.ndim, head)],
-            u[_along(axis, u.ndim, tail)],
-            out=out[_along(axis, u.ndim, tail)],
-        )
-        np.subtract(
-            u[_along(axis, u.ndim, last)],
-            u[_along(axis, u.ndim, first)],
-            out=out[_along(axis, u.ndim, first)],
-        )
+        pairs = ((head, tail), (last, first))
+    for source, target in pairs:
+        at = _along(axis, u.ndim, target)
+        np.subtract(u[_along(axis, u.ndim, source)], u[at], out=out[at])
     return out
 
 
