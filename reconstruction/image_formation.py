@@ -271,12 +271,12 @@ class ImageFormation(LinearOperator):
         of each raw pixel times n bands: far fewer products than mixing every sample's
         colour image and then interpolating it.
         """
-        npx = int(np.prod(self.domain_shape[:2]))
-        n = self.domain_shape[2]
-        channel = self.channel_index.ravel()
         bands = _own_bands(self.colour_matrices)
         if bands is not None:
             return self._combined_per_band(matrices, bands)
+        npx = int(np.prod(self.domain_shape[:2]))
+        n = self.domain_shape[2]
+        channel = self.channel_index.ravel()
         rows, cols, weights, columns = [], [], [], []
         for j, matrix in enumerate(matrices):
             counts = np.diff(matrix.indptr)
@@ -297,8 +297,8 @@ class ImageFormation(LinearOperator):
         indptr = np.concatenate([[0], np.cumsum(per_row)])
         indices = ((pairs % npx)[:, None] * n + np.arange(n)).ravel()
         matrix = sp.csr_matrix((values.ravel(), indices, indptr), shape=(npx, npx * n))
-        # a colour matrix with zero columns (a band-centre response: each sample sees only
-        # its own band) leaves stored zeros that every product would still read
+        # colour matrices with zero entries (samples that see some bands only, where the
+        # per-band route does not apply) leave stored zeros that every product would read
         matrix.eliminate_zeros()
         return matrix
 
