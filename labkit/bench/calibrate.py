@@ -3,7 +3,7 @@
 Target (issue 5): a 2448×2048 image of the disk pattern (≥ 800 disks) under the 7
 filters — keypoints and model selection in ≤ 60 s on 2 cores. The HDR inputs come from
 the simulator (noise-free render plus the noise of a merged bracket,
-:func:`labkit.sim.hdr_truth.simulated_hdr_images`; rendering is not timed), and every
+:func:`labkit.hdr.truth.simulated_hdr_images`; rendering is not timed), and every
 model is compared with the lens' true dispersion inside the keypoints' convex hull.
 
 Issue 7 adds the keypoint count: polynomial and spline fits to random subsets of the disk
@@ -62,8 +62,8 @@ def bench_calibrate(
     """
     from calibration.bands import filter_bands
     from calibration.dispersion_calibration import MIN_PURITY, calibrate_dispersion
+    from labkit.hdr.truth import simulated_hdr_images
     from labkit.sim import SimulatedRig
-    from labkit.sim.hdr_truth import simulated_hdr_images
 
     rig = load_rig(rig_path)
     sim = SimulatedRig(rig)

@@ -86,9 +86,9 @@ def bench_hdr(
     cases : list of Measurement
     notes : list of str and Plot
     """
+    from labkit.hdr.truth import effective_exposures, merge_truth
     from labkit.io import read_raw_exr
     from labkit.sim import SimulatedRig
-    from labkit.sim.hdr_truth import effective_exposures, merge_truth
 
     rig = hdr_bench_rig(load_rig(rig_path))
     work = Path(tempfile.mkdtemp(prefix="labkit-bench-hdr-", dir=os.environ.get("TMPDIR")))

@@ -12,11 +12,11 @@ from _helpers import write_rig
 from calibration.dispersion_model import load_dispersion_model
 from calibration.multispectral import green_bilinear
 from labkit.cli import main
+from labkit.hdr.truth import simulated_hdr_images
 from labkit.io import read_spectral_exr, write_raw_exr, write_spectral_exr
 from labkit.io.exr import SpectralImage
 from labkit.rig import load_rig
 from labkit.sim import SimulatedRig
-from labkit.sim.hdr_truth import simulated_hdr_images
 
 SHAPE = (192, 256)
 

@@ -19,8 +19,8 @@ from labkit.hdr import (
     local_weight,
     merge_exposures,
 )
+from labkit.hdr.truth import merge_truth
 from labkit.hdr.weights import DISK_1
-from labkit.sim.hdr_truth import merge_truth
 from labkit.sim.sensor import Sensor, SensorModel
 
 EXPOSURES = [0.001 * 2**k for k in range(8)]  # 1 ms … 128 ms, 8 exposures

@@ -13,13 +13,13 @@ from _helpers import write_rig
 
 from labkit.cli import main
 from labkit.errors import DataError
+from labkit.hdr.truth import effective_exposures
 from labkit.io import read_raw_exr, read_raw_tiff
 from labkit.protocol import Engine
 from labkit.protocol.hardware import open_hardware
 from labkit.rig import load_rig
 from labkit.session import Session
 from labkit.sim import SimulatedRig
-from labkit.sim.hdr_truth import effective_exposures
 
 HDR_PLAN = {
     "sim.sensor.width": 96,
