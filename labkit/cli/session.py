@@ -81,8 +81,8 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def _show(args: argparse.Namespace) -> int:
+    from labkit.protocol.summary import summarise
     from labkit.session import Session
-    from labkit.session.summary import summarise
 
     session = Session.open(args.session)
     problems = session.verify() if args.verify else None

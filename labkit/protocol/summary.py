@@ -1,4 +1,4 @@
-"""A readable summary of a session (``labkit session show``)."""
+"""A readable summary of a session against its plan (``labkit session show``)."""
 
 from __future__ import annotations
 
