@@ -65,7 +65,8 @@ def _devices(args: argparse.Namespace) -> int:
         except LabkitError as error:
             print(f"  {cti}: {error}")
     print("serial ports:")
-    from labkit.devices.serial_ports import list_serial_ports, probe
+    from labkit.devices.serial_ports import list_serial_ports
+    from labkit.devices.slider_probe import probe
 
     ports = list_serial_ports()
     for port in ports:

@@ -1,10 +1,9 @@
-"""Serial ports: list them, open one with a clear error, and find which filter slider answers.
+"""Serial ports: list them, and open one with a clear error.
 
 :func:`open_port` is how every labkit serial driver opens its port: a missing, busy or
 forbidden port becomes one :class:`~labkit.errors.DeviceError` line that names the port, says
-what is wrong and how to fix it. :func:`probe` is the discovery behind ``labkit devices``: it
-asks a port, in turn, in the FW102C protocol (115200 baud) and the Elliptec protocol
-(9600 baud) and reports whichever answers.
+what is wrong and how to fix it. Which slider answers on a port is
+:func:`labkit.devices.slider_probe.probe`, a layer above the drivers.
 """
 
 from __future__ import annotations
@@ -19,7 +18,7 @@ from serial.tools import list_ports
 
 from labkit.errors import DeviceError
 
-__all__ = ["SerialPortInfo", "list_serial_ports", "open_port", "probe"]
+__all__ = ["SerialPortInfo", "list_serial_ports", "open_port"]
 
 
 @dataclass(frozen=True)
@@ -128,48 +127,3 @@ def _open_error(port: str, exc: serial.SerialException) -> str:
         f"could not open serial port {port}: {reason} (ports found: {_ports_found()}); "
         "check the cable and slider.port in the rig file"
     )
-
-
-def probe(port: str, *, timeout_s: float = 0.5, addresses: str = "0") -> tuple[str, str] | None:
-    """Find which filter-slider protocol answers on `port`.
-
-    Tries the FW102C protocol (``*idn?`` at 115200 baud), then the Elliptec protocol (``in``
-    at 9600 baud, at each of `addresses`). Nothing is moved.
-
-    Parameters
-    ----------
-    port : str
-        Path of the serial port.
-    timeout_s : float
-        Longest wait for each answer, s; a silent port takes about
-        ``timeout_s * (1 + len(addresses))`` in all.
-    addresses : str
-        Elliptec bus addresses to ask, hex characters (``"0123456789ABCDEF"`` for all).
-
-    Returns
-    -------
-    tuple of (str, str) or None
-        ``(driver, identity)``: driver ``"fw102c"`` or ``"elliptec"`` (the rig file's
-        ``slider.driver``) and the device's identification; None when neither answers.
-
-    Raises
-    ------
-    DeviceError
-        If the port cannot be opened (see :func:`open_port`).
-    """
-    # Imported here: the drivers import open_port from this module.
-    from labkit.devices.elliptec import identify_elliptec
-    from labkit.devices.fw102c import identify_fw102c
-
-    if not timeout_s > 0:
-        raise DeviceError(f"probe of {port}: timeout_s must be > 0 s, got {timeout_s!r}")
-    options = {"timeout": timeout_s, "write_timeout": timeout_s, "exclusive": True}
-    with open_port(port, baudrate=115200, **options) as ser:
-        identity = identify_fw102c(ser)
-    if identity is not None:
-        return "fw102c", identity
-    with open_port(port, baudrate=9600, **options) as ser:
-        identity = identify_elliptec(ser, addresses=addresses)
-    if identity is not None:
-        return "elliptec", identity
-    return None

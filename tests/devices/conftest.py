@@ -11,16 +11,21 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import os
 import shutil
 import socket
 import subprocess
 import tempfile
 import time
+import tty
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
+
+from labkit.devices import serial_ports
 
 FAKE_BINARY = "arv-fake-gv-camera-0.8"
 FAKE_ADDRESS = "127.0.0.1"
@@ -233,3 +238,29 @@ def fake_gv(fake_gv_manager: FakeGvManager) -> FakeGvCamera:
 def lossy_fake_gv(fake_gv_manager: FakeGvManager) -> FakeGvCamera:
     """A simulator dropping 20 ‰ of its stream packets (``-r 20``), serial LK20."""
     return fake_gv_manager.ensure("LK20", loss_per_mille=20)
+
+
+# -- serial ports --------------------------------------------------------------------------
+
+#: What ``serial.tools.list_ports.comports`` returns in the `fake_ports` fixture.
+FAKE_PORTS = [
+    SimpleNamespace(device="/dev/ttyUSB0", description="FT230X Basic UART", hwid="USB VID:PID"),
+    SimpleNamespace(device="/dev/ttyS0", description="", hwid=""),
+]
+
+
+@pytest.fixture
+def fake_ports(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(serial_ports.list_ports, "comports", lambda: list(FAKE_PORTS))
+
+
+@pytest.fixture
+def silent_port() -> Iterator[str]:
+    """A pseudo-terminal nobody answers on."""
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    try:
+        yield os.ttyname(slave)
+    finally:
+        os.close(master)
+        os.close(slave)

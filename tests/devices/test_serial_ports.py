@@ -1,46 +1,16 @@
-"""Tests of serial-port listing, opening with clear errors, and slider discovery (probe)."""
+"""Tests of serial-port listing and opening with clear errors."""
 
 from __future__ import annotations
 
 import errno
-import os
-import tty
-from collections.abc import Iterator
-from types import SimpleNamespace
 
 import pytest
 import serial
 
 from labkit.devices import serial_ports
-from labkit.devices.serial_ports import SerialPortInfo, list_serial_ports, open_port, probe
+from labkit.devices.serial_ports import SerialPortInfo, list_serial_ports, open_port
 from labkit.errors import DeviceError
-from labkit.sim.elliptec import ElliptecSimulator
 from labkit.sim.fw102c import FW102CSimulator
-
-FAKE_PORTS = [
-    SimpleNamespace(device="/dev/ttyUSB0", description="FT230X Basic UART", hwid="USB VID:PID"),
-    SimpleNamespace(device="/dev/ttyS0", description="", hwid=""),
-]
-
-
-@pytest.fixture
-def fake_ports(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(serial_ports.list_ports, "comports", lambda: list(FAKE_PORTS))
-
-
-@pytest.fixture
-def silent_port() -> Iterator[str]:
-    """A pseudo-terminal nobody answers on."""
-    master, slave = os.openpty()
-    tty.setraw(slave)
-    try:
-        yield os.ttyname(slave)
-    finally:
-        os.close(master)
-        os.close(slave)
-
-
-# -- listing and opening ----------------------------------------------------------------------
 
 
 def test_list_serial_ports_sorted_with_descriptions(fake_ports: None) -> None:
@@ -96,43 +66,3 @@ def test_port_in_use_is_reported() -> None:
 def test_bad_setting_is_a_device_error(silent_port: str) -> None:
     with pytest.raises(DeviceError, match=f"serial port {silent_port}: invalid setting"):
         open_port(silent_port, baudrate=-5)
-
-
-# -- probe ------------------------------------------------------------------------------------
-
-
-def test_probe_identifies_the_fw102c() -> None:
-    moves: list[int] = []
-    with FW102CSimulator(time_scale=0, on_move=moves.append) as sim:
-        assert probe(sim.port, timeout_s=0.3) == (
-            "fw102c",
-            "THORLABS FW102C/FW212C Filter Wheel version 1.07",
-        )
-        assert (sim.position, moves) == (1, [])
-
-
-@pytest.mark.parametrize(("model", "address"), [("ELL9", "0"), ("ELL6", "5")])
-def test_probe_identifies_the_elliptec(model: str, address: str) -> None:
-    moves: list[int] = []
-    with ElliptecSimulator(model, address=address, time_scale=0, on_move=moves.append) as sim:
-        found = probe(sim.port, timeout_s=0.2, addresses="05")
-        assert (sim.position, moves) == (1, [])
-    assert found == (
-        "elliptec",
-        f"Thorlabs Elliptec {model} serial 11200456 at address {address} "
-        "(2019, firmware 17, hardware 1)",
-    )
-
-
-def test_probe_silent_port_is_none(silent_port: str) -> None:
-    assert probe(silent_port, timeout_s=0.2) is None
-
-
-def test_probe_elliptec_at_an_address_not_asked_is_none() -> None:
-    with ElliptecSimulator("ELL9", address=7, time_scale=0) as sim:
-        assert probe(sim.port, timeout_s=0.2) is None
-
-
-def test_probe_missing_port_raises(fake_ports: None) -> None:
-    with pytest.raises(DeviceError, match="serial port /dev/ttyUSB7 does not exist"):
-        probe("/dev/ttyUSB7")
