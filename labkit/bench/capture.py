@@ -95,10 +95,11 @@ def auto_bracketing_counts(rig: Rig) -> dict[str, Any]:
     import numpy as np
 
     from labkit.protocol import choose_exposures, estimate_rates, exposure_ladder, meter
+    from labkit.sim.camera import SimCamera
     from labkit.sim.world import SimulatedRig
 
     world = SimulatedRig(rig)
-    camera = world.camera(fast=True)
+    camera = SimCamera(world, fast=True)
     auto = rig.plan.auto
     low, high = auto.low_fraction, auto.high_fraction
     counts = {"auto_frames": 0, "fixed_frames": 0, "missed_pixels": 0, "metering_frames": 0}

@@ -8,6 +8,7 @@ import numpy as np
 
 from labkit.bench.harness import Measurement, measure
 from labkit.rig import load_rig
+from labkit.sim.camera import SimCamera
 from labkit.sim.world import SimulatedRig
 
 RENDER_TARGET_S = 15.0
@@ -39,7 +40,7 @@ def bench_sim(rig_path: str | Path, *, repeats: int = 3) -> tuple[list[Measureme
     batch.extra = {"per_illumination_s": batch.seconds / len(illuminations)}
     cases.append(batch)
 
-    camera = rig.camera(fast=True)
+    camera = SimCamera(rig, fast=True)
     camera.set_scene("colorchecker")
     camera.set_illumination("unfiltered")
     camera.grab(0.006)  # irradiance is cached from here on

@@ -9,6 +9,7 @@ from labkit.cfa import pixel_format_for
 from labkit.errors import ConfigError
 from labkit.io import raw_preview, write_png, write_raw_tiff
 from labkit.rig import default_rig_path, load_rig
+from labkit.sim.camera import SimCamera
 from labkit.sim.world import SimulatedRig
 
 
@@ -57,7 +58,7 @@ def _render(args: argparse.Namespace) -> int:
     if args.exposure <= 0:
         raise ConfigError(f"--exposure must be > 0 s, got {args.exposure}")
     rig = SimulatedRig(load_rig(args.rig or default_rig_path()))
-    camera = rig.camera(fast=True, seed=args.seed)
+    camera = SimCamera(rig, fast=True, seed=args.seed)
     camera.set_scene(args.scene)
     camera.set_illumination(args.illumination)
     if args.gain is not None:

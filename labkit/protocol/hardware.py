@@ -52,9 +52,10 @@ def open_camera(rig: Rig, *, fast: bool = True, shape: tuple[int, int] | None = 
     """
     config = rig.camera
     if config.backend == "sim":
+        from labkit.sim.camera import SimCamera
         from labkit.sim.world import SimulatedRig
 
-        return SimulatedRig(rig, shape=shape).camera(fast=fast)
+        return SimCamera(SimulatedRig(rig, shape=shape), fast=fast)
     if config.backend == "aravis":
         from labkit.devices.aravis import AravisCamera
 

@@ -148,12 +148,6 @@ class SimulatedRig:
         with self._lock:
             self._cache.clear()
 
-    def camera(self, *, fast: bool = True, seed: int | None = None):
-        """A :class:`~labkit.sim.camera.SimCamera` looking at this rig."""
-        from labkit.sim.camera import SimCamera
-
-        return SimCamera(self, fast=fast, seed=seed)
-
 
 _SCENE_BUILDERS = {
     "disks": disk_pattern,

@@ -16,7 +16,7 @@ from labkit.protocol.bracketing import (
     exposure_ladder,
     meter,
 )
-from labkit.sim import SimulatedRig
+from labkit.sim import SimCamera, SimulatedRig
 
 
 def _properly(rate: np.ndarray, t: float, low: float = 0.02, high: float = 0.95) -> np.ndarray:
@@ -95,7 +95,7 @@ def test_auto_bracketing_exposes_every_reachable_pixel_of_the_simulator(
     """Ground truth: noise-free signal of every pixel at the chosen exposures."""
     rig = small_sim_rig.rig
     auto = rig.plan.auto
-    camera = small_sim_rig.camera(seed=3)
+    camera = SimCamera(small_sim_rig, seed=3)
     auto_frames = fixed_frames = 0
     for scene, illumination in [("colorchecker", "unfiltered"), ("colorchecker", "450"),
                                 ("disks", "600"), ("colorchecker", "700")]:  # fmt: skip

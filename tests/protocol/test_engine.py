@@ -17,6 +17,7 @@ from labkit.protocol.engine import Progress
 from labkit.protocol.hardware import open_hardware
 from labkit.rig import load_rig
 from labkit.session import MANIFEST_FILE, Session, key_of
+from labkit.sim import SimCamera
 
 
 def _run(rig, folder: Path, **engine_options):
@@ -37,7 +38,7 @@ def test_plan_runs_into_a_session_with_the_right_light_in_every_frame(
     ids = [r["frame_id"] for r in session.records.values()]
     assert len(set(ids)) == len(ids)
     world = hw.camera.rig
-    reference = world.camera(seed=99)
+    reference = SimCamera(world, seed=99)
     for record in session.records.values():
         key = key_of(record)
         image, _ = read_raw_tiff(session.folder / record["file"])

@@ -9,7 +9,7 @@ import pytest
 from labkit.errors import ConfigError
 from labkit.protocol import Capture, CoverLight, Meter, build_plan, validate_plan
 from labkit.rig import load_rig
-from labkit.sim import SimulatedRig
+from labkit.sim import SimCamera, SimulatedRig
 
 
 def test_thesis_plan_counts_and_dark_frames(sim_rig_path: Path) -> None:
@@ -44,7 +44,7 @@ class _Slider:
 def test_validation_rejects_missing_slots_and_out_of_range_exposures(
     sim_rig_path: Path, make_rig
 ) -> None:
-    camera = SimulatedRig(load_rig(sim_rig_path), shape=(8, 8)).camera()
+    camera = SimCamera(SimulatedRig(load_rig(sim_rig_path), shape=(8, 8)))
     with pytest.raises(ConfigError, match=r"slider positions \[7, 8\] do not exist .*ttyFAKE"):
         validate_plan(build_plan(load_rig(sim_rig_path)), camera, _Slider())
     short = load_rig(make_rig(**{"plan.exposures_s.unfiltered": [1e-6, 0.01]}))

@@ -20,6 +20,7 @@ from labkit.sim import (
     Scene,
     Sensor,
     SensorModel,
+    SimCamera,
     SimulatedRig,
     disk_pattern,
     flat_field,
@@ -460,9 +461,9 @@ def test_disk_area_is_exact(response, lamp, radius: float) -> None:
 
 
 def test_same_seed_same_frames(small_sim_rig: SimulatedRig) -> None:
-    frames_a = small_sim_rig.camera(seed=5).grab(0.004, 3)
-    frames_b = small_sim_rig.camera(seed=5).grab(0.004, 3)
-    frames_c = small_sim_rig.camera(seed=6).grab(0.004, 3)
+    frames_a = SimCamera(small_sim_rig, seed=5).grab(0.004, 3)
+    frames_b = SimCamera(small_sim_rig, seed=5).grab(0.004, 3)
+    frames_c = SimCamera(small_sim_rig, seed=6).grab(0.004, 3)
     for a, b, c in zip(frames_a, frames_b, frames_c, strict=True):
         assert a.frame_id == b.frame_id == c.frame_id
         np.testing.assert_array_equal(a.image, b.image)
@@ -472,7 +473,7 @@ def test_same_seed_same_frames(small_sim_rig: SimulatedRig) -> None:
 
 
 def test_dark_frame_through_camera(small_sim_rig: SimulatedRig) -> None:
-    camera = small_sim_rig.camera(seed=8)
+    camera = SimCamera(small_sim_rig, seed=8)
     camera.set_illumination("dark")
     frame = camera.grab(1.0, 1)[0]
     model = small_sim_rig.sensor.model
@@ -486,7 +487,7 @@ def test_dark_frame_through_camera(small_sim_rig: SimulatedRig) -> None:
 
 
 def test_exposure_time_feature(small_sim_rig: SimulatedRig) -> None:
-    camera = small_sim_rig.camera()
+    camera = SimCamera(small_sim_rig)
     camera.set("ExposureTime", 12345.0)
     assert camera.get("ExposureTime") == 12345.0
     camera.set("ExposureTime", 12345.4)
@@ -505,7 +506,7 @@ def test_exposure_time_feature(small_sim_rig: SimulatedRig) -> None:
 def test_pixel_formats_scale_counts(small_sim_rig: SimulatedRig) -> None:
     cameras = {}
     for bits in (8, 12, 16):
-        camera = small_sim_rig.camera(seed=11)
+        camera = SimCamera(small_sim_rig, seed=11)
         camera.set_scene("colorchecker")
         camera.set("PixelFormat", f"BayerGB{bits}")
         cameras[bits] = camera.grab(0.004, 1)[0]
@@ -518,7 +519,7 @@ def test_pixel_formats_scale_counts(small_sim_rig: SimulatedRig) -> None:
     assert [cameras[b].pixel_format for b in (8, 12, 16)] == ["BayerGB8", "BayerGB12", "BayerGB16"]
     # the black level (32 DN at 12 bits) is reported in each format's own counts
     assert [cameras[b].extra["black_level"] for b in (8, 12, 16)] == [2.0, 32.0, 512.0]
-    camera = small_sim_rig.camera()
+    camera = SimCamera(small_sim_rig)
     with pytest.raises(DeviceError, match="not one of"):
         camera.set("PixelFormat", "BayerRG12")
     camera.start_acquisition()
@@ -528,7 +529,7 @@ def test_pixel_formats_scale_counts(small_sim_rig: SimulatedRig) -> None:
 
 @pytest.mark.parametrize("exposure_s", [0.01, 0.0123])
 def test_frame_ids_and_device_timestamps(small_sim_rig: SimulatedRig, exposure_s: float) -> None:
-    camera = small_sim_rig.camera()
+    camera = SimCamera(small_sim_rig)
     readout = small_sim_rig.rig.sim.readout_s
     frames = camera.grab(exposure_s, 3) + camera.grab(exposure_s, 2)
     assert [f.frame_id for f in frames] == [1, 2, 3, 4, 5]
@@ -540,14 +541,14 @@ def test_frame_ids_and_device_timestamps(small_sim_rig: SimulatedRig, exposure_s
 
 
 def test_device_clock_is_exact_for_thesis_exposure(small_sim_rig: SimulatedRig) -> None:
-    camera = small_sim_rig.camera()
+    camera = SimCamera(small_sim_rig)
     camera.set_illumination("dark")
     frames = camera.grab(3.916, 2)
     assert frames[1].device_timestamp_ns - frames[0].device_timestamp_ns == 3_966_000_000
 
 
 def test_software_trigger_needs_trigger_mode_on(small_sim_rig: SimulatedRig) -> None:
-    camera = small_sim_rig.camera()
+    camera = SimCamera(small_sim_rig)
     camera.set("TriggerMode", "On")
     with pytest.raises(DeviceError, match="before AcquisitionStart"):
         camera.execute("TriggerSoftware")
@@ -572,7 +573,7 @@ def test_twelve_bit_format_from_fourteen_bit_adc(sim_rig_path) -> None:
     rig = SimulatedRig(rig_from_dict(data, source="adc14"), shape=(128, 160))
     images = {}
     for bits in (12, 16):
-        camera = rig.camera(seed=4)
+        camera = SimCamera(rig, seed=4)
         camera.set("PixelFormat", f"BayerGB{bits}")
         images[bits] = camera.grab(0.004, 1)[0].image
     np.testing.assert_array_equal(images[12], images[16] >> 4)
