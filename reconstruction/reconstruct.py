@@ -11,7 +11,8 @@ before any work; the job then runs in four named stages:
 4. :func:`assemble` — undo the normalisation, warp for the §3.9.2 variant, the spectrum at
    the band centres, the raw colour image and the log.
 
-:meth:`Reconstruction.save` writes the result (:mod:`reconstruction.output`).
+The result is a :class:`~reconstruction.result.Reconstruction`, whose ``save`` writes the
+files (:mod:`reconstruction.result`).
 """
 
 from __future__ import annotations
@@ -20,8 +21,7 @@ import math
 import time
 import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
-from pathlib import Path
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -44,6 +44,7 @@ from reconstruction.patches import (
     texture,
 )
 from reconstruction.problem import Problem
+from reconstruction.result import Reconstruction
 from reconstruction.solvers.admm import absolute_tolerance
 from reconstruction.weights import select_weights
 
@@ -68,45 +69,6 @@ to be narrow-band, and a spectral smoothness σ > 0 draws a warning. On the simu
 lies above the misfit of unfiltered light and below that of most of the 10 nm filters;
 the filters at the ends of the camera's response stay below it, because what they pass is
 mostly leaked broadband light (figures in the README, spectral smoothness)."""
-
-
-@dataclass
-class Reconstruction:
-    """Result of :func:`reconstruct`.
-
-    Attributes
-    ----------
-    spectral : ndarray (rows, cols, n) float32
-        Spectrum at the band centres (spectral latent space) or raw colour R, G, B
-        (colour latent space), in the raw image's units per nm (per channel for colour).
-    wavelengths_nm : ndarray (n,) or None
-        Band centres, nm (None for the colour latent space).
-    raw_colour : ndarray (rows, cols, 3) float32
-        The latent image in the camera's raw colour space, aberration-free, raw units.
-    latent : LatentSpace
-    log : dict
-        Weights, normalisation, timings, per-patch records (JSON-ready).
-    """
-
-    spectral: np.ndarray
-    wavelengths_nm: np.ndarray | None
-    raw_colour: np.ndarray
-    latent: LatentSpace
-    log: dict = field(default_factory=dict)
-
-    def save(
-        self,
-        out: str | Path,
-        *,
-        provenance: dict[str, Any] | None = None,
-        log: dict[str, Any] | None = None,
-    ) -> dict[str, Path]:
-        """Write ``spectral.exr``, ``raw_colour.exr``, ``preview.png`` and ``log.json``
-        into the folder `out`, atomically, the log last; returns the paths by name
-        (:func:`reconstruction.output.save_reconstruction`)."""
-        from reconstruction.output import save_reconstruction
-
-        return save_reconstruction(self, out, provenance=provenance, log=log)
 
 
 def check_raw(raw: np.ndarray, *, where: str = "the raw image") -> np.ndarray:

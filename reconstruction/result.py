@@ -1,23 +1,72 @@
-"""Writing a reconstruction to a folder: the files ``labkit reconstruct`` and the demos write.
+"""The result of a reconstruction, and the files it writes (``labkit reconstruct``, the demos).
 
-``spectral.exr`` (spectral latent space: the spectrum at the band centres, raw units per
-nm, band centres and basis in the header), ``raw_colour.exr`` (the aberration-free image in
-raw camera colour, raw units), ``preview.png`` (sRGB; :func:`labkit.io.spectral_preview`
-for spectra, the raw colour otherwise) and ``log.json`` (the reconstruction's log with the
-caller's provenance). Every file is written atomically and the log last, so a folder with a
-log holds a complete set.
+:meth:`Reconstruction.save` writes ``spectral.exr`` (spectral latent space: the spectrum at
+the band centres, raw units per nm, band centres and basis in the header),
+``raw_colour.exr`` (the aberration-free image in raw camera colour, raw units),
+``preview.png`` (sRGB; :func:`labkit.io.spectral_preview` for spectra, the raw colour
+otherwise) and ``log.json`` (the reconstruction's log with the caller's provenance). Every
+file is written atomically and the log last, so a folder with a log holds a complete set.
 """
 
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from reconstruction.reconstruct import Reconstruction
+import labkit
+from labkit.io import (
+    SpectralImage,
+    spectral_preview,
+    to_display,
+    to_plain,
+    write_png,
+    write_rgb_exr,
+    write_spectral_exr,
+    write_text_atomic,
+)
+from reconstruction.image_formation import LatentSpace
+
+
+@dataclass
+class Reconstruction:
+    """Result of :func:`reconstruct`.
+
+    Attributes
+    ----------
+    spectral : ndarray (rows, cols, n) float32
+        Spectrum at the band centres (spectral latent space) or raw colour R, G, B
+        (colour latent space), in the raw image's units per nm (per channel for colour).
+    wavelengths_nm : ndarray (n,) or None
+        Band centres, nm (None for the colour latent space).
+    raw_colour : ndarray (rows, cols, 3) float32
+        The latent image in the camera's raw colour space, aberration-free, raw units.
+    latent : LatentSpace
+    log : dict
+        Weights, normalisation, timings, per-patch records (JSON-ready).
+    """
+
+    spectral: np.ndarray
+    wavelengths_nm: np.ndarray | None
+    raw_colour: np.ndarray
+    latent: LatentSpace
+    log: dict = field(default_factory=dict)
+
+    def save(
+        self,
+        out: str | Path,
+        *,
+        provenance: dict[str, Any] | None = None,
+        log: dict[str, Any] | None = None,
+    ) -> dict[str, Path]:
+        """Write ``spectral.exr``, ``raw_colour.exr``, ``preview.png`` and ``log.json``
+        into the folder `out`, atomically, the log last; returns the paths by name
+        (:func:`save_reconstruction`)."""
+        return save_reconstruction(self, out, provenance=provenance, log=log)
+
 
 OUTPUT_FILES = ("spectral.exr", "raw_colour.exr", "preview.png", "log.json")
 """Names of the files :func:`save_reconstruction` writes (no spectral.exr for colour)."""
@@ -49,18 +98,6 @@ def save_reconstruction(
     dict of str to Path
         ``spectral`` (spectral latent space only), ``raw_colour``, ``preview``, ``log``.
     """
-    import labkit
-    from labkit.io import (
-        SpectralImage,
-        spectral_preview,
-        to_display,
-        to_plain,
-        write_png,
-        write_rgb_exr,
-        write_spectral_exr,
-        write_text_atomic,
-    )
-
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     header = {**recorded_options(result), **(provenance or {})}

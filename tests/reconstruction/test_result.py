@@ -9,10 +9,11 @@ import numpy as np
 import pytest
 from _problems import RESPONSE
 
+import reconstruction.result
 from labkit.io import read_spectral_exr
 from labkit.spectra import camera_response
 from reconstruction import reconstruct
-from reconstruction.output import OUTPUT_FILES
+from reconstruction.result import OUTPUT_FILES
 
 CFA = "GBRG"
 
@@ -48,14 +49,12 @@ def test_colour_result_has_no_spectral_file(tmp_path: Path) -> None:
 
 def test_a_failed_write_leaves_no_log(tmp_path: Path, monkeypatch) -> None:
     """The log is written last: a folder without log.json is an incomplete one."""
-    import labkit.io
-
     result = reconstruct(_raw(), cfa=CFA, latent="colour", weights="fixed:0.01", patch_px=32)
 
     def broken(*args, **kwargs):
         raise OSError("disk full")
 
-    monkeypatch.setattr(labkit.io, "write_png", broken)
+    monkeypatch.setattr(reconstruction.result, "write_png", broken)
     with pytest.raises(OSError, match="disk full"):
         result.save(tmp_path)
     assert not (tmp_path / "log.json").exists()
