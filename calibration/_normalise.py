@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from calibration._model_files import float_array
 from labkit.errors import ConfigError, DataError
 
 
@@ -134,8 +135,6 @@ class Normaliser:
     @classmethod
     def from_dict(cls, data: Any, where: str) -> Normaliser:
         """Read back :meth:`to_dict`; errors name `where`."""
-        from calibration.dispersion_model import float_array
-
         if not isinstance(data, Mapping) or "xy" not in data or "displacement" not in data:
             raise ConfigError(f"{where} must have `xy` and `displacement` entries")
         xy, disp = data["xy"], data["displacement"]

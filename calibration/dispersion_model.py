@@ -29,6 +29,9 @@ from typing import Any, Literal, Protocol
 import numpy as np
 import yaml
 
+from calibration._model_files import float_array
+from calibration.polynomial_field import PolynomialField
+from calibration.spline_field import SplineField
 from labkit.errors import ConfigError, DataError
 from labkit.io import write_text_atomic
 from labkit.io.plain import to_plain
@@ -58,19 +61,11 @@ class DisplacementField(Protocol):
         ...
 
 
-#: Field readers by kind; :mod:`calibration.polynomial` and :mod:`calibration.spline`
-#: register theirs with :func:`register_field`.
-FIELD_READERS: dict[str, Callable[[Mapping[str, Any], str], DisplacementField]] = {}
-
-
-def register_field(kind: str):
-    """Class decorator: register ``cls.from_dict(data, where)`` as the reader of `kind`."""
-
-    def decorate(cls):
-        FIELD_READERS[kind] = cls.from_dict
-        return cls
-
-    return decorate
+#: Field readers by kind (the ``kind`` key of each field in a model file).
+FIELD_READERS: dict[str, Callable[[Mapping[str, Any], str], DisplacementField]] = {
+    PolynomialField.kind: PolynomialField.from_dict,
+    SplineField.kind: SplineField.from_dict,
+}
 
 
 @dataclass(frozen=True)
@@ -125,12 +120,12 @@ class CalibratedRegion:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any], where: str) -> CalibratedRegion:
-        hull = _float_array(data.get("hull_xy"), f"{where}.hull_xy")
+        hull = float_array(data.get("hull_xy"), f"{where}.hull_xy")
         if hull.ndim != 2 or hull.shape[1] != 2:
             raise ConfigError(f"{where}.hull_xy must be a list of [x, y] pairs")
         span = data.get("wavelength_nm")
         if span is not None:
-            span_arr = _float_array(span, f"{where}.wavelength_nm")
+            span_arr = float_array(span, f"{where}.wavelength_nm")
             if span_arr.shape != (2,):
                 raise ConfigError(f"{where}.wavelength_nm must be [min, max]")
             span = (float(span_arr[0]), float(span_arr[1]))
@@ -367,10 +362,6 @@ def load_dispersion_model(path: str | Path) -> DispersionModel:
     ConfigError
         The file is missing, is not YAML, or any key is invalid (the message names it).
     """
-    # the field readers register themselves on import
-    import calibration.polynomial
-    import calibration.spline  # noqa: F401
-
     path = Path(path)
     if not path.is_file():
         raise ConfigError(
@@ -382,28 +373,3 @@ def load_dispersion_model(path: str | Path) -> DispersionModel:
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path} is not valid YAML: {exc}") from None
     return DispersionModel.from_dict(data, source=str(path))
-
-
-def _float_array(value: Any, where: str) -> np.ndarray:
-    """A finite float array from YAML lists, or a ConfigError naming `where`."""
-    try:
-        array = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ConfigError(f"{where} must hold numbers") from None
-    if array.size == 0 or not np.all(np.isfinite(array)):
-        raise ConfigError(f"{where} must be a non-empty list of finite numbers")
-    return array
-
-
-def float_array(
-    value: Any, where: str, *, shape: tuple[int | None, ...] | None = None
-) -> np.ndarray:
-    """Validated float array for field readers: finite, and of `shape` (None = any size)."""
-    array = _float_array(value, where)
-    if shape is not None and (
-        array.ndim != len(shape)
-        or any(s is not None and s != a for s, a in zip(shape, array.shape, strict=True))
-    ):
-        want = " × ".join("n" if s is None else str(s) for s in shape)
-        raise ConfigError(f"{where} must be an array of shape {want}, got {array.shape}")
-    return array

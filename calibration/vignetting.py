@@ -36,6 +36,7 @@ import numpy as np
 import yaml
 
 from calibration import _polybasis as pb
+from calibration._model_files import float_array
 from labkit.blas_threads import fixed_blas_threads
 from labkit.cfa import CHANNELS, channel_index, check_layout
 from labkit.errors import ConfigError, DataError
@@ -241,8 +242,6 @@ class VignettingModel:
     @classmethod
     def from_dict(cls, data: Any, *, source: str = "<vignetting model>") -> VignettingModel:
         """Validate and build a model from its YAML document; errors name `source` and key."""
-        from calibration.dispersion_model import float_array
-
         if not isinstance(data, Mapping):
             raise ConfigError(f"{source}: a vignetting model file must be a YAML mapping")
         if data.get("kind") != KIND:

@@ -15,7 +15,8 @@ from calibration import _polybasis as pb
 from calibration._normalise import Normaliser
 from calibration.dispersion_model import DispersionModel
 from calibration.keypoints import DispersionKeypoints
-from calibration.polynomial import PolynomialField, fit_polynomial_model
+from calibration.polynomial import fit_polynomial_model
+from calibration.polynomial_field import PolynomialField
 from labkit.errors import ConfigError, DataError
 from labkit.sim.lens import Lens
 

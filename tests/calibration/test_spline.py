@@ -15,12 +15,12 @@ from calibration.keypoints import DispersionKeypoints
 from calibration.spline import (
     GRID_HIGH,
     GRID_LOW,
-    SplineField,
     _decompose,
     _fit_field,
     fit_spline_model,
     gcv_grid_search,
 )
+from calibration.spline_field import SplineField
 from labkit.errors import ConfigError, DataError
 from labkit.sim.lens import Lens
 
