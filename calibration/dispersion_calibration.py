@@ -23,8 +23,13 @@ import numpy as np
 
 from calibration._hdr_inputs import source_of
 from calibration.bands import FilterBand
+from calibration.disks import background_mask, channel_disk_keypoints, disk_keypoints
 from calibration.dispersion_model import DispersionModel
 from calibration.keypoints import DispersionKeypoints
+from calibration.polynomial import fit_polynomial_model
+from calibration.registration import channel_registration_keypoints, registration_keypoints
+from calibration.spline import fit_spline_model
+from calibration.vignetting import fit_vignetting
 from labkit.blas_threads import fixed_blas_threads
 from labkit.errors import DataError
 from labkit.io.exr import RawImage
@@ -139,12 +144,8 @@ def calibrate_dispersion(
         points = _spectral_keypoints(chosen, keypoints, reference_nm, wavelengths, workers)
     say(f"fitting a {model} model to {len(points)} keypoints")
     if model == "polynomial":
-        from calibration.polynomial import fit_polynomial_model
-
         fitted = fit_polynomial_model(points, direction=direction, rng=rng)
     else:
-        from calibration.spline import fit_spline_model
-
         fitted = fit_spline_model(points, direction=direction, rng=rng)
     provenance = dict(fitted.provenance)
     provenance.update(
@@ -261,9 +262,6 @@ def _corrected(image: RawImage, vignetting: str, say: Callable[[str], None]) -> 
         return image
     if vignetting != "auto":
         raise DataError(f"vignetting must be none or auto, not {vignetting!r}")
-    from calibration.disks import background_mask
-    from calibration.vignetting import fit_vignetting
-
     name = source_of(image)
     say(f"vignetting correction of {name}")
     try:
@@ -282,23 +280,15 @@ def _spectral_keypoints(
     workers: int | None,
 ) -> DispersionKeypoints:
     if method == "disks":
-        from calibration.disks import disk_keypoints
-
         return disk_keypoints(
             images, reference_nm=reference_nm, wavelengths=wavelengths, workers=workers
         )
-    from calibration.registration import registration_keypoints
-
     return registration_keypoints(images, reference_nm=reference_nm, wavelengths=wavelengths)
 
 
 def _channel_keypoints(image: RawImage, method: str, workers: int | None) -> DispersionKeypoints:
     if method == "disks":
-        from calibration.disks import channel_disk_keypoints
-
         return channel_disk_keypoints(image, workers=workers)
-    from calibration.registration import channel_registration_keypoints
-
     return channel_registration_keypoints(image)
 
 

@@ -48,7 +48,13 @@ from labkit.fitting import principal_slope
 from labkit.io.atomic import write_text_atomic
 from labkit.io.exr import RawImage
 from labkit.io.plain import to_plain
-from labkit.spectra import Spectra, camera_response
+from labkit.spectra import (
+    Spectra,
+    camera_response,
+    illuminant,
+    trapezoid_weights,
+    wavelength_grid,
+)
 
 FORMAT_VERSION = 1
 
@@ -592,8 +598,6 @@ def nominal_channel_sensitivity(
     ConfigError
         An illumination is unknown or unfiltered.
     """
-    from labkit.spectra import illuminant, trapezoid_weights, wavelength_grid
-
     names = list(rig.slider.illumination_names() if illuminations is None else illuminations)
     filters = {}
     for name in names:

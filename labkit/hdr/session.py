@@ -36,6 +36,7 @@ from labkit.io.atomic import write_text_atomic
 from labkit.io.exr import RawImage, write_raw_exr
 from labkit.io.preview import raw_preview, write_png
 from labkit.io.tiff import json_default, read_raw_tiff
+from labkit.session import Session
 
 INDEX_FILE = "hdr.yaml"
 
@@ -119,8 +120,6 @@ def plan_hdr(
         No frames; frames of different sizes or CFA layouts; missing dark frames
         (unless `no_dark`).
     """
-    from labkit.session import Session
-
     session = Session.open(session_dir)
     folder = session.folder
     records = list(session.records.values())

@@ -14,10 +14,16 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from labkit.devices.camera import Camera
+from labkit.devices.elliptec import Elliptec
+from labkit.devices.fw102c import FW102C
 from labkit.devices.slider import FilterSlider
 from labkit.errors import ConfigError
 from labkit.protocol.stage import OperatorStage, SimStage, Stage
 from labkit.rig import Rig
+from labkit.sim.camera import SimCamera
+from labkit.sim.elliptec import ElliptecSimulator
+from labkit.sim.fw102c import FW102CSimulator
+from labkit.sim.world import SimulatedRig
 
 
 @dataclass
@@ -52,9 +58,6 @@ def open_camera(rig: Rig, *, fast: bool = True, shape: tuple[int, int] | None = 
     """
     config = rig.camera
     if config.backend == "sim":
-        from labkit.sim.camera import SimCamera
-        from labkit.sim.world import SimulatedRig
-
         return SimCamera(SimulatedRig(rig, shape=shape), fast=fast)
     if config.backend == "aravis":
         from labkit.devices.aravis import AravisCamera
@@ -82,11 +85,7 @@ def open_slider(rig: Rig, *, port: str | None = None) -> FilterSlider:
             "slider.port 'sim' names the simulated slider; it is opened by open_hardware"
         )
     if config.driver == "elliptec":
-        from labkit.devices.elliptec import Elliptec
-
         return Elliptec(port, address=config.address, **timing)
-    from labkit.devices.fw102c import FW102C
-
     return FW102C(port, **timing)
 
 
@@ -140,15 +139,11 @@ def _start_simulator(rig: Rig, *, fast: bool, on_move: Any) -> Any:
     time_scale = 0.0 if fast else 1.0
     first = min(rig.slider.positions)
     if rig.slider.driver == "elliptec":
-        from labkit.sim.elliptec import ElliptecSimulator
-
         model = "ELL6" if slots <= 2 else "ELL9"
         simulator = ElliptecSimulator(
             model=model, address=rig.slider.address, time_scale=time_scale, on_move=on_move
         )
     else:
-        from labkit.sim.fw102c import FW102CSimulator
-
         simulator = FW102CSimulator(
             positions=6 if slots <= 6 else 12,
             position=first,
