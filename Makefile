@@ -21,9 +21,7 @@ LOCK_FLAGS ?= --upgrade
 demo: venv
 	$(VENV)/bin/labkit demo --out $(DEMO_OUT)
 
-test: venv
-	$(VENV)/bin/ruff check labkit calibration reconstruction tests
-	$(VENV)/bin/ruff format --check labkit calibration reconstruction tests
+test: lint
 	$(VENV)/bin/pytest -m "not slow" $(PYTEST_ARGS)
 
 # `bench all --full`: every stage, the full-size reconstruction and the whole 256²…2048²
@@ -35,9 +33,11 @@ bench: venv
 	$(VENV)/bin/pytest -m slow $(PYTEST_ARGS) || status=$$?; \
 	exit $$status
 
+# ruff, and the layers of pyproject.toml's import contracts (README, Architecture)
 lint: venv
 	$(VENV)/bin/ruff check labkit calibration reconstruction tests
 	$(VENV)/bin/ruff format --check labkit calibration reconstruction tests
+	$(VENV)/bin/lint-imports --no-cache --no-logo
 
 # Debian packages from DESIGN.md: installed when missing (needs root, as in CI).
 system-deps:
