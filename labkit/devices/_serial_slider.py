@@ -36,8 +36,16 @@ class SerialSlider:
     port: str
     timeout_s: float
     _serial: serial.Serial | None
-    slot_count: int
-    _link_hint: str
+
+    @property
+    def slot_count(self) -> int:
+        """Number of slots (the driver reads it from the device)."""
+        raise NotImplementedError
+
+    @property
+    def _link_hint(self) -> str:
+        """What to check when the device does not answer, for error messages."""
+        raise NotImplementedError
 
     @property
     def _quiet_s(self) -> float:

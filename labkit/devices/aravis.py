@@ -200,6 +200,11 @@ class AravisCamera:
         found), or the camera cannot be opened or configured.
     """
 
+    # Aravis' GObjects (PyGObject ships no types); None while disconnected
+    _cam: Any
+    _dev: Any
+    _stream: Any
+
     backend = BACKEND
     #: Buffers in the stream's pool.
     n_buffers = 8
@@ -228,9 +233,9 @@ class AravisCamera:
         self.retries = retries
         self.reconnect_attempts = reconnect_attempts
 
-        self._cam: Any = None
-        self._dev: Any = None
-        self._stream: Any = None
+        self._cam = None
+        self._dev = None
+        self._stream = None
         self._handler: int | None = None
         self._generation = 0
         self._control_lost = threading.Event()
@@ -996,7 +1001,7 @@ class AravisCamera:
         elif status == Aravis.BufferStatus.SUCCESS:
             return "NO_FRAME_ID"
         if status != Aravis.BufferStatus.SUCCESS:
-            return status.value_name.removeprefix("ARV_BUFFER_STATUS_")
+            return str(status.value_name).removeprefix("ARV_BUFFER_STATUS_")
         payload_type = buffer.get_payload_type()
         if payload_type not in (
             Aravis.BufferPayloadType.IMAGE,

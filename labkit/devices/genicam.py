@@ -403,7 +403,7 @@ class GenICamCamera:
         from genicam.genapi import EInterfaceType
 
         kind = node.node.principal_interface_type
-        return EInterfaceType(kind).name.removeprefix("intfI").lower()
+        return str(EInterfaceType(kind).name).removeprefix("intfI").lower()
 
     @property
     def identity(self) -> CameraIdentity:

@@ -27,6 +27,7 @@ otherwise).
 
 from __future__ import annotations
 
+from importlib.metadata import version
 from pathlib import Path
 from typing import Any
 
@@ -177,7 +178,8 @@ def _read_exr(path: Path, cfa: str | None, cfa_from: str) -> RawImage:
 # -- TIFF and PNG -----------------------------------------------------------------------
 def _read_image(path: Path, cfa: str | None, cfa_from: str) -> RawImage:
     if path.suffix.lower() == ".png":
-        data, metadata, reader = _read_png(path), {}, "Pillow"
+        data, reader = _read_png(path), "Pillow"
+        metadata: dict[str, Any] = {}
     else:
         data, metadata = _read_tiff(path)
         reader = "tifffile"
@@ -236,7 +238,7 @@ def _read_tiff(path: Path) -> tuple[np.ndarray, dict[str, Any]]:
     try:
         with tifffile.TiffFile(path) as tif:
             pages = len(tif.pages)
-            page = tif.pages[0]
+            page = tif.pages.first
             samples = int(page.samplesperpixel)
             photometric = int(page.photometric)
             data = page.asarray() if pages == 1 and samples == 1 else None
@@ -337,7 +339,7 @@ def _read_camera_raw(path: Path, cfa: str | None, cfa_from: str) -> RawImage:
         ) from None
     source = {
         "file": str(path),
-        "reader": f"LibRaw {'.'.join(map(str, rawpy.libraw_version))} (rawpy {rawpy.__version__})",
+        "reader": f"LibRaw {'.'.join(map(str, rawpy.libraw_version))} (rawpy {version('rawpy')})",
         "cfa_from": "file",
         "colours": description,
         "black_levels": levels.tolist(),
@@ -401,7 +403,7 @@ def _camera_names(path: Path) -> dict[str, str]:
     names: dict[str, str] = {}
     try:
         with tifffile.TiffFile(path) as tif:
-            tags = tif.pages[0].tags
+            tags = tif.pages.first.tags
             for key, code in (("make", 271), ("model", 272), ("unique_camera_model", 50708)):
                 tag = tags.get(code)
                 if tag is not None and isinstance(tag.value, str) and tag.value.strip():

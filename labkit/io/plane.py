@@ -29,11 +29,11 @@ def read_plane(path: str | Path, *, what: str = "image") -> np.ndarray:
     suffix = path.suffix.lower()
     try:
         if suffix == ".npy":
-            return np.load(path)
+            return np.asarray(np.load(path))
         if suffix in (".tif", ".tiff"):
             import tifffile
 
-            return tifffile.imread(path)
+            return np.asarray(tifffile.imread(path))
         from PIL import Image
 
         with Image.open(path) as image:

@@ -74,7 +74,7 @@ def to_display(
     if not np.isfinite(scale) or scale <= 0:
         scale = 1.0
     normalised = np.clip(image / scale, 0.0, 1.0)
-    encoded = np.where(
+    encoded: np.ndarray = np.where(
         normalised <= 0.0031308, 12.92 * normalised, 1.055 * normalised ** (1 / 2.4) - 0.055
     )
     return (encoded * 255 + 0.5).astype(np.uint8)

@@ -60,7 +60,7 @@ def read_raw_tiff(path: str | Path) -> tuple[np.ndarray, dict[str, Any]]:
     try:
         with tifffile.TiffFile(path) as tif:
             image = tif.asarray()
-            description = tif.pages[0].description or ""
+            description = tif.pages.first.description or ""
     except FileNotFoundError:
         raise DataError(f"raw frame {path} does not exist") from None
     except Exception as error:  # tifffile raises many types on corrupt files

@@ -133,9 +133,9 @@ def dot_test(
     Returns both inner products; an exact adjoint gives a relative error at rounding
     level (≈ 1e-15 in float64, ≈ 1e-6 in float32).
     """
-    draw = sampler or (lambda shape: rng.standard_normal(shape))
-    x = draw(op.domain_shape).astype(dtype)
-    y = draw(op.range_shape).astype(dtype)
+    draw: Callable[[tuple[int, ...]], np.ndarray] = sampler or rng.standard_normal
+    x: np.ndarray = draw(op.domain_shape).astype(dtype)
+    y: np.ndarray = draw(op.range_shape).astype(dtype)
     ax = op.forward(x)
     aty = op.adjoint(y)
     return DotTest(

@@ -57,6 +57,7 @@ spectrum ``S(s_j) = Σ_i K(s_j − v_i) I_i`` (3.9), i.e. ``B_ji = K(s_j − v_i
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -251,7 +252,7 @@ def _padded_weights(
     targets: np.ndarray,
     centres: np.ndarray,
     spacing: float,
-    kernel,
+    kernel: Callable[[np.ndarray], np.ndarray],
     reach_nm: float,
 ) -> np.ndarray:
     """``K(t − v)`` over `centres` padded with copies of the end values (constant extension).
@@ -332,10 +333,10 @@ class SpectralBasis(LinearOperator):
         self._matrix = self._build()
         self._matrix32 = self._matrix.astype(np.float32)
 
-    def _kernel(self):
+    def _kernel(self) -> tuple[Callable[[np.ndarray], np.ndarray], float]:
         spacing = self.spacing_nm
         if self.kernel == "gaussian":
-            sigma = self.sigma_nm
+            sigma = gaussian_sigma_nm(spacing)
             scale = spacing / (sigma * np.sqrt(2.0 * np.pi))
             reach = _GAUSSIAN_REACH_SIGMAS * sigma
 

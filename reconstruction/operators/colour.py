@@ -36,13 +36,14 @@ class SpectralToColour(LinearOperator):
     name = "Ω"
 
     def __init__(self, shape: tuple[int, int], matrix: np.ndarray) -> None:
-        shape = tuple(int(n) for n in shape)
+        size = tuple(int(n) for n in shape)
         matrix = np.asarray(matrix, dtype=np.float64)
-        if len(shape) != 2 or min(shape) < 1:
+        if len(size) != 2 or min(size) < 1:
             raise DataError(
                 f"SpectralToColour needs an image size (rows, cols) of positive integers, "
-                f"got {shape}"
+                f"got {size}"
             )
+        shape = (size[0], size[1])
         if matrix.ndim != 2 or matrix.shape[0] != 3 or matrix.shape[1] < 1:
             raise DataError(
                 f"SpectralToColour needs a (3, bands) matrix (rows R, G, B), got shape "

@@ -24,6 +24,7 @@ patch so that consecutive sampled bands shift by about 0.1 px or less.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -127,7 +128,7 @@ class Dispersion(LinearOperator):
                     f"wavelengths_nm must be a non-empty 1-D array of finite values (nm), "
                     f"got shape {waves.shape}"
                 )
-            bands: list[dict] = [{"wavelength_nm": float(w)} for w in waves]
+            bands: list[dict[str, Any]] = [{"wavelength_nm": float(w)} for w in waves]
             self.wavelengths_nm: np.ndarray | None = waves
             self.channels: tuple[str, ...] | None = None
         else:
@@ -260,7 +261,16 @@ def _bilinear_matrix(
     return _csr(x0, x1, y0, y1, fx, fy, rows, cols)
 
 
-def _csr(x0, x1, y0, y1, fx, fy, rows: int, cols: int) -> sp.csr_matrix:
+def _csr(
+    x0: np.ndarray,
+    x1: np.ndarray,
+    y0: np.ndarray,
+    y1: np.ndarray,
+    fx: np.ndarray,
+    fy: np.ndarray,
+    rows: int,
+    cols: int,
+) -> sp.csr_matrix:
     """The bilinear sampling matrix from corner indices and fractions (one row per pixel)."""
     indices = np.stack([y0 * cols + x0, y0 * cols + x1, y1 * cols + x0, y1 * cols + x1], axis=1)
     weights = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], axis=1)

@@ -37,11 +37,12 @@ class Mosaic(LinearOperator):
     name = "M"
 
     def __init__(self, shape: tuple[int, int], cfa: str) -> None:
-        shape = tuple(int(n) for n in shape)
-        if len(shape) != 2 or min(shape) < 1:
+        size = tuple(int(n) for n in shape)
+        if len(size) != 2 or min(size) < 1:
             raise DataError(
-                f"Mosaic needs an image size (rows, cols) of positive integers, got {shape}"
+                f"Mosaic needs an image size (rows, cols) of positive integers, got {size}"
             )
+        shape = (size[0], size[1])
         self.cfa = check_layout(cfa)
         super().__init__((*shape, 3), shape)
         self.index = channel_index(self.cfa, shape).astype(np.intp)

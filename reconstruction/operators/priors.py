@@ -53,14 +53,14 @@ def _check_boundary(boundary: str) -> str:
     return boundary
 
 
-def _check_shape(shape: tuple[int, ...], what: str, min_channels: int = 1) -> tuple[int, ...]:
-    shape = tuple(int(n) for n in shape)
-    if len(shape) != 3 or min(shape[:2]) < 1 or shape[2] < min_channels:
+def _check_shape(shape: tuple[int, ...], what: str, min_channels: int = 1) -> tuple[int, int, int]:
+    values = tuple(int(n) for n in shape)
+    if len(values) != 3 or min(values[:2]) < 1 or values[2] < min_channels:
         raise DataError(
             f"{what} needs a domain shape (rows, cols, channels) with rows, cols ≥ 1 and "
-            f"channels ≥ {min_channels}, got {shape}"
+            f"channels ≥ {min_channels}, got {values}"
         )
-    return shape
+    return values[0], values[1], values[2]
 
 
 def _along(axis: int, ndim: int, part: slice) -> tuple[slice, ...]:

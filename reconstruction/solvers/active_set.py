@@ -34,6 +34,7 @@ step does); when W repeats, x ≥ 0, μ ≥ 0 and ``Kx − b = E_W μ`` are the 
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -135,16 +136,18 @@ class _Capacitance:
     def __init__(
         self,
         solver: FourierSolver,
-        impulses: np.ndarray,
+        impulses: np.ndarray | None,
         pinned: np.ndarray,
         active: np.ndarray,
-    ):
+    ) -> None:
         self.solver = solver
         self.free = ~active
         self.active_index = np.nonzero(active)
         self.index = np.nonzero(pinned)
-        self.factor = None
+        self.factor: tuple[np.ndarray, bool] | None = None
         if self.index[0].size:
+            if impulses is None:
+                raise ValueError("pinned values need the impulse responses")
             block = inverse_block(impulses, self.index, active.shape[:2])
             self.factor = scipy.linalg.cho_factor(block, check_finite=False)
 
@@ -156,6 +159,13 @@ class _Capacitance:
             z -= self.solver.solve(nu, refine=False)
         z[self.active_index] = 0.0
         return z
+
+
+def _restricted(
+    apply: Callable[[np.ndarray], np.ndarray], free: np.ndarray, v: np.ndarray
+) -> np.ndarray:
+    """K restricted to the free values: ``v ↦ F K F v`` (F: the free values' mask)."""
+    return apply(v * free) * free
 
 
 @fixed_blas_threads
@@ -226,7 +236,7 @@ def polish(
         start = x * free
         while True:
             result = conjugate_gradient(
-                lambda v, free=free: apply(v * free) * free,
+                functools.partial(_restricted, apply, free),
                 b * free,
                 x0=start,
                 preconditioner=precondition,

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -143,7 +144,7 @@ class SolveReport:
     accelerated: int = 0
     polish: PolishReport | None = None
 
-    def summary(self) -> dict:
+    def summary(self) -> dict[str, Any]:
         """A compact dict for logs."""
         cg = self.cg_iterations
         return {
@@ -187,8 +188,8 @@ class _Split:
     rho: float
     z: np.ndarray
     u: np.ndarray
-    z_next: np.ndarray | None = None
-    u_next: np.ndarray | None = None
+    z_next: np.ndarray = field(default_factory=lambda: np.empty(0))  # this iteration's
+    u_next: np.ndarray = field(default_factory=lambda: np.empty(0))
     grouped: bool = False
 
     def prox(self, v: np.ndarray) -> np.ndarray:
@@ -220,7 +221,7 @@ class _QuadraticStep:
         """(coefficient, term index) of every DᵀD in the matrix, and the identity's coefficient."""
         p = self.problem
         terms = [(2.0 * w, j) for j, (w, t, _) in enumerate(p.penalties) if t.norm == 2 and w > 0]
-        identity = 2.0 * p.ridge
+        identity = 2.0 * _ridge(p)
         for s in self.splits:
             if s.term_index is None:
                 identity += s.rho
@@ -273,7 +274,8 @@ class _QuadraticStep:
         if rhs_norm > 0:
             rtol = max(min(rtol, atol / rhs_norm), CG_RTOL_FLOOR)
         # ADMM starts each solve from the last one's x, whose K x CG has kept up to date
-        known = self._last is not None and x0 is self._last[0]
+        last = self._last
+        known = last[1] if last is not None and x0 is last[0] else None
         result = conjugate_gradient(
             self.apply,
             rhs,
@@ -281,10 +283,10 @@ class _QuadraticStep:
             preconditioner=self._precondition,
             rtol=rtol,
             max_iter=self.cg_max_iter,
-            product0=self._last[1] if known else None,
+            product0=known,
             track_product=True,
         )
-        self._last = (result.x, result.product)
+        self._last = None if result.product is None else (result.x, result.product)
         self.cg_iterations.append(result.iterations)
         self.cg_residual = max(self.cg_residual, result.relative_residual)
         return result.x
@@ -296,6 +298,13 @@ def quadratic_system(problem: Problem) -> tuple[Callable[[np.ndarray], np.ndarra
     without Φ, the mean-translation approximation with (the active-set finish's inputs)."""
     step = _QuadraticStep(problem, [], 1e-5, 100)
     return step.apply, step.solver
+
+
+def _ridge(problem: Problem) -> float:
+    """ε of `problem` (set when the Problem is built)."""
+    if problem.ridge is None:
+        raise DataError("the problem has no ridge ε; build it with Problem(…), which sets one")
+    return problem.ridge
 
 
 def data_curvature(problem: Problem) -> float:
@@ -338,7 +347,7 @@ def initial_estimate(problem: Problem, *, solver: FourierSolver | None = None) -
             formation.cfa,
             formation.fourier_colour(),
             terms=quadratic,
-            identity=2.0 * problem.ridge,
+            identity=2.0 * _ridge(problem),
         )
     x = solver.solve(2.0 * formation.translation_adjoint(problem.raw))
     return np.maximum(x, 0.0) if problem.nonneg else x
@@ -446,11 +455,20 @@ def solve(
     rho0 = float(penalty) if penalty is not None else data_curvature(problem)
 
     splits: list[_Split] = []
-    for j, (weight, term, d) in enumerate(problem.penalties):
+    for j, (weight, term, difference) in enumerate(problem.penalties):
         if term.norm == 1 and weight > 0:
-            gx = d.forward(x)
+            gx = difference.forward(x)
             splits.append(
-                _Split(term.label, d, weight, j, rho0, gx, np.zeros_like(gx), grouped=term.grouped)
+                _Split(
+                    term.label,
+                    difference,
+                    weight,
+                    j,
+                    rho0,
+                    gx,
+                    np.zeros_like(gx),
+                    grouped=term.grouped,
+                )
             )
     if problem.nonneg:
         identity = _Identity(shape)
@@ -472,7 +490,7 @@ def solve(
     cg_atol = np.inf
     updates = 0
     anderson = _Anderson(ANDERSON_MEMORY)
-    projected = splits[-1].z if problem.nonneg else None
+    projected = splits[-1].z if problem.nonneg else x  # x ≥ 0: the last split's z
     for k in range(1, max_iter + 1):
         rhs = data_rhs.copy()
         for s in splits:
@@ -565,8 +583,8 @@ class _Anderson:
 
     def __init__(self, memory: int) -> None:
         self.memory = memory
-        self._d_mapped: np.ndarray | None = None  # (memory, size) ring buffers of ΔG, ΔF
-        self._d_residuals: np.ndarray | None = None
+        self._d_mapped = np.empty((memory, 0))  # (memory, size) ring buffers of ΔG, ΔF
+        self._d_residuals = np.empty((memory, 0))
         self._gram = np.zeros((memory, memory))  # ΔFᵀΔF, updated one column at a time
         self.reset()
 
@@ -578,13 +596,15 @@ class _Anderson:
         self.accepted = 0
         self.fallback: np.ndarray | None = None  # the plain step an extrapolation replaced
 
-    def _store(self, mapped: np.ndarray, residual: np.ndarray) -> None:
-        if self._d_mapped is None or self._d_mapped.shape[1] != mapped.size:
+    def _store(
+        self, mapped: np.ndarray, residual: np.ndarray, last: tuple[np.ndarray, np.ndarray]
+    ) -> None:
+        if self._d_mapped.shape[1] != mapped.size:
             self._d_mapped = np.empty((self.memory, mapped.size))
             self._d_residuals = np.empty((self.memory, mapped.size))
         slot = self.slot
-        np.subtract(mapped, self.last[0], out=self._d_mapped[slot])
-        d_residual = np.subtract(residual, self.last[1], out=self._d_residuals[slot])
+        np.subtract(mapped, last[0], out=self._d_mapped[slot])
+        d_residual = np.subtract(residual, last[1], out=self._d_residuals[slot])
         self.count = min(self.count + 1, self.memory)
         products = self._d_residuals[: self.count] @ d_residual
         self._gram[slot, : self.count] = products
@@ -604,7 +624,7 @@ class _Anderson:
                 return fallback
         self.best = min(self.best, norm)
         if self.last is not None:
-            self._store(mapped, residual)
+            self._store(mapped, residual, self.last)
         self.last = (mapped, residual)
         if self.count == 0:
             return mapped

@@ -76,7 +76,7 @@ def conjugate_gradient(
         step = rz / curvature
         x += step * p
         r -= step * kp
-        if track_product:
+        if product is not None:  # track_product
             product += step * kp
         residual = float(np.linalg.norm(r)) / b_norm
         if residual <= rtol:

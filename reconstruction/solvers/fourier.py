@@ -23,9 +23,11 @@ the solver doubles as the preconditioner of the conjugate-gradient solve with th
 from __future__ import annotations
 
 import hashlib
+import math
 import threading
 from collections import OrderedDict
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import scipy.fft
@@ -111,17 +113,17 @@ class _BlockCache:
 
     def __init__(self, size: int) -> None:
         self.size = size
-        self._entries: OrderedDict[tuple, tuple[np.ndarray, ...]] = OrderedDict()
+        self._entries: OrderedDict[tuple[Any, ...], tuple[np.ndarray, ...]] = OrderedDict()
         self._lock = threading.Lock()
 
-    def get(self, key: tuple) -> tuple[np.ndarray, ...] | None:
+    def get(self, key: tuple[Any, ...]) -> tuple[np.ndarray, ...] | None:
         with self._lock:
             entry = self._entries.get(key)
             if entry is not None:
                 self._entries.move_to_end(key)
             return entry
 
-    def put(self, key: tuple, *arrays: np.ndarray) -> None:
+    def put(self, key: tuple[Any, ...], *arrays: np.ndarray) -> None:
         for array in arrays:
             array.flags.writeable = False
         with self._lock:
@@ -144,7 +146,7 @@ def _matrix_key(
     colour: np.ndarray,
     data_weight: float,
     terms: Sequence[tuple[float, Term]],
-) -> tuple:
+) -> tuple[Any, ...]:
     """What the matrix of a solver without dispersion depends on (identity aside)."""
     digest = hashlib.blake2b(np.ascontiguousarray(colour, dtype=np.float64).tobytes())
     for coefficient, term in terms:
@@ -185,7 +187,7 @@ class FourierSolver:
 
     def __init__(
         self,
-        shape: tuple[int, int],
+        shape: tuple[int, ...],
         cfa: str,
         colour: np.ndarray,
         *,
@@ -228,10 +230,11 @@ class FourierSolver:
                 for symbol, matrix in term.fourier_pieces(self.shape, n):
                     prior += coefficient * symbol[..., None, None] * matrix
         self._prior = to_quadruples(prior)[self._kept]  # (H, 4, n, n)
-        self._key = None
+        self._key: tuple[Any, ...] | None = None
         if colour.ndim == 2:  # per-frequency colour (dispersion) makes every patch differ
             self._key = _matrix_key(self.shape, cfa, colour, data_weight, terms)
-        self.identity = None
+        self.identity = math.nan  # none yet: set_identity inverts
+        self._inverse32: np.ndarray | None = None  # made on the first solve_single
         self.set_identity(identity)
 
     def set_identity(self, identity: float) -> None:
@@ -253,26 +256,28 @@ class FourierSolver:
         for s in range(4):
             matrix[:, s, :, s, :] += self._prior[:, s] + identity * np.eye(n)
         self._matrix = matrix.reshape(nq, 4 * n, 4 * n)
+        inverse: np.ndarray | None
         try:
-            self._inverse = np.linalg.inv(self._matrix)
+            inverse = np.linalg.inv(self._matrix)
         except np.linalg.LinAlgError:
-            self._inverse = None
+            inverse = None
         # a (numerically) singular block inverts to garbage without an error: check the
         # inverse on one random vector per block (O(n²) per block, the inversion is O(n³))
         probe = np.random.default_rng(0).standard_normal((1, 4 * n, 1))
-        if self._inverse is not None:
-            residual = self._matrix @ (self._inverse @ probe) - probe
+        if inverse is not None:
+            residual = self._matrix @ (inverse @ probe) - probe
             worst = float(np.max(np.linalg.norm(residual, axis=1))) / float(np.linalg.norm(probe))
-        if self._inverse is None or not worst <= SINGULAR_RESIDUAL:
+        if inverse is None or not worst <= SINGULAR_RESIDUAL:
             raise DataError(
                 "the quadratic step's matrix is singular: with identity coefficient "
                 f"{identity:g}, the data and prior terms leave some frequency components "
                 "undetermined (a Bayer mosaic observes 4 of the 4n per frequency quadruple); "
                 "give identity > 0 (e.g. a ridge of 1e-9 × the data term's scale)"
             )
+        self._inverse = inverse
         self._inverse_residual = worst
         self.identity = identity
-        self._inverse32: np.ndarray | None = None  # made on the first solve_single
+        self._inverse32 = None
         if self._key is not None:
             _BLOCKS.put((*self._key, identity), self._matrix, self._inverse, np.array(worst))
 
