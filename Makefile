@@ -33,11 +33,13 @@ bench: venv
 	$(VENV)/bin/pytest -m slow $(PYTEST_ARGS) || status=$$?; \
 	exit $$status
 
-# ruff, and the layers of pyproject.toml's import contracts (README, Architecture)
+# ruff, the layers of pyproject.toml's import contracts and mypy on the typed packages
+# (README, Architecture)
 lint: venv
 	$(VENV)/bin/ruff check labkit calibration reconstruction tests
 	$(VENV)/bin/ruff format --check labkit calibration reconstruction tests
 	$(VENV)/bin/lint-imports --no-cache --no-logo
+	$(VENV)/bin/mypy
 
 # Debian packages from DESIGN.md: installed when missing (needs root, as in CI).
 system-deps:
