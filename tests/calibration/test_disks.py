@@ -12,7 +12,6 @@ from scipy.spatial import cKDTree
 from calibration.disks import (
     DiskCandidates,
     DiskFit,
-    _displacement_outliers,
     background_mask,
     channel_disk_keypoints,
     detect_disks,
@@ -20,6 +19,7 @@ from calibration.disks import (
     fit_disks,
     pair_mutual_nearest,
 )
+from calibration.disks.pair import _displacement_outliers
 from labkit.cfa import mosaic
 from labkit.errors import DataError
 from labkit.io.exr import RawImage
