@@ -10,14 +10,12 @@ combinations of products of one-variable polynomials in *normalised* coordinates
 Basis
 -----
 The thesis writes the models with monomials xⁱ yʲ λᵏ of normalised coordinates. Their
-design matrices grow ill-conditioned with the degree (measured on a full-image grid of
-~8200 keypoints in 7 bands: 7e4 at degree 12 in (x, y), 4e6 at degrees (12, 5) in
-(x, y, λ); worse for keypoints that cover the image unevenly), so we use the
-**Legendre** polynomials Pᵢ(u) Pⱼ(v) Pₖ(w) instead, where (u, v, w) are the normalised
+design matrices grow ill-conditioned with the degree (figures in the README, calibration),
+so we use the **Legendre** polynomials Pᵢ(u) Pⱼ(v) Pₖ(w) instead, where (u, v, w) are the normalised
 coordinates mapped affinely onto [−1, 1] over the fitting data (:class:`Domain`). For
 every degree this spans exactly the same space of polynomials as the monomials (Pₙ has
 degree n, so the change of basis is triangular and invertible); only the numerical
-conditioning differs (same data: 12 and 49).
+conditioning differs.
 
 Column order
 ------------
@@ -47,10 +45,7 @@ instead, and skipped when that design is numerically singular or has more column
 training rows. Validation errors come from the validation Gram matrix
 (``‖y‖² − 2 cᵀXᵀy + cᵀXᵀXc``), or directly from the residuals where that expression would
 lose precision. BLAS runs at labkit's fixed thread count (:mod:`labkit.blas_threads`).
-
-Measured (8246 keypoints, 7 bands, degrees 0…12 × 0…5, 5 validation bands × 10 folds =
-50 splits, 78 candidates): 1.3–1.5 s on a 2-core machine, with another process loading
-both cores.
+Its run time is in the README (calibration) and ``labkit bench calibrate``.
 """
 
 from __future__ import annotations

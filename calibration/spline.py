@@ -80,13 +80,10 @@ a first-order approximation (its error grows with the field's curvature × cell 
 gives centres of unequal noise, which GCV, assuming equal variances, does not know about.
 What was done is recorded in ``selection["reduction"]``.
 
-Speed (2-core AMD EPYC, float64, otherwise idle): fitting 3000 centres takes 2.2 s (2-D)
-to 2.7 s (3-D), mostly the eigen-decomposition of a 3000² matrix; evaluating 10⁶ points
-against 3000 centres 3.7 s (7.3 s of CPU, ≈ 2.4 ns per point and centre). Evaluation
-processes blocks of points × centres that fit the caches, with reused buffers, on a pool
-of threads (NumPy and SciPy release the GIL); memory is O(points + block). On a machine
-whose cores are busy with other work the fit slows down far more than the CPU share
-suggests (OpenBLAS threads spin waiting for each other): 10–35 s was seen.
+Speed: fitting costs O(n³), mostly the eigen-decomposition of the n² kernel matrix;
+evaluation processes blocks of points × centres that fit the caches, with reused buffers,
+on a pool of threads (NumPy and SciPy release the GIL); memory is O(points + block).
+Figures in the README (calibration).
 
 Limitations
 -----------
