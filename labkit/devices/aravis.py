@@ -43,7 +43,6 @@ never sees loopback traffic.
 from __future__ import annotations
 
 import contextlib
-import difflib
 import math
 import threading
 import time
@@ -51,9 +50,9 @@ import weakref
 from collections.abc import Iterator
 from typing import Any
 
-from labkit.cfa import layout_from_pixel_format
 from labkit.devices import _pixels
-from labkit.devices.camera import Bounds, CameraIdentity, DeviceInfo
+from labkit.devices.camera import CameraIdentity, DeviceInfo
+from labkit.devices.genicam_features import EXPOSURE_FEATURES, GAIN_FEATURES, GenICamFeatures
 from labkit.errors import DataError, DeviceError
 from labkit.frame import Frame
 
@@ -74,10 +73,6 @@ __all__ = ["BACKEND", "AravisCamera", "list_devices"]
 
 BACKEND = "aravis"
 
-#: Exposure-time features, in the order Aravis prefers them (µs).
-EXPOSURE_FEATURES = ("ExposureTime", "ExposureTimeAbs")
-#: Gain features, in the order Aravis prefers them (``Gain`` in dB, ``GainRaw`` device units).
-GAIN_FEATURES = ("Gain", "GainRaw")
 #: Features that change the payload or the stream: writing one stops the acquisition and
 #: the stream is rebuilt (with buffers of the new payload size) by the next grab.
 STREAM_FEATURES = frozenset({
@@ -105,8 +100,6 @@ _POLL_S = 0.05
 #: Seconds without packets after which a frame that started arriving counts as stalled
 #: (longer than Aravis' default frame retention, 0.1 s).
 _STALL_S = 0.3
-#: Increments below this are "continuous" (GenICam floats without ``<Inc>`` report DBL_MIN).
-_TINY_INCREMENT = 1e-12
 
 
 def _require_aravis() -> None:
@@ -176,7 +169,7 @@ def _format_s(seconds: float) -> str:
     return f"{seconds:.3f}" if seconds >= 1e-3 else f"{seconds:.3g}"
 
 
-class AravisCamera:
+class AravisCamera(GenICamFeatures):
     """A GigE Vision camera driven through Aravis 0.8 (implements the Camera protocol).
 
     Parameters
@@ -362,7 +355,7 @@ class AravisCamera:
             if self._pixel_format_wanted is not None:
                 self._cam.set_pixel_format_from_string(self._pixel_format_wanted)
             for name, value in self._applied.items():
-                self._write(name, self._node(name), value)
+                self._write_feature(name, value)
             if self._gain_at_open is not None and not set(GAIN_FEATURES) & set(self._applied):
                 self._cam.set_gain(self._gain_at_open)
             self._pixel_format = self._cam.get_pixel_format_as_string()
@@ -470,34 +463,76 @@ class AravisCamera:
                     walk(category)
         return names
 
-    def _node(self, name: str) -> Any:
+    # -- the node-map primitives of GenICamFeatures ---------------------------------------------
+    @property
+    def _where(self) -> str:
+        return f"camera {self.device_id}"
+
+    def _usable(self) -> None:
+        self._ensure_open()
+
+    def _kind(self, name: str) -> str | None:
         node = self._dev.get_feature(name)
         if node is None:
-            similar = difflib.get_close_matches(name, self.feature_names(), n=5)
-            hint = f"similar: {', '.join(similar)}" if similar else "see feature_names()"
-            raise DeviceError(f"camera {self.device_id}: no feature {name!r}; {hint}")
-        return node
+            return None
+        # interfaces, not classes: a Converter node is a GcFloat, an enumeration a GcInteger
+        for interface, kind in (
+            (Aravis.GcEnumeration, "enumeration"),
+            (Aravis.GcBoolean, "boolean"),
+            (Aravis.GcFloat, "float"),
+            (Aravis.GcInteger, "integer"),
+            (Aravis.GcString, "string"),
+            (Aravis.GcCommand, "command"),
+        ):
+            if isinstance(node, interface):
+                return kind
+        return type(node).__name__.removeprefix("Gc").lower()  # a register, a category…
 
-    def get(self, name: str) -> Any:
-        """Read a feature (GenICam units): float, int, bool, or str for enums and strings."""
-        self._ensure_open()
-        node = self._node(name)
+    def _read(self, name: str, kind: str) -> Any:
         dev = self._dev
-        with self._gerror(f"reading {name}"):
-            if isinstance(node, Aravis.GcEnumeration):
-                return dev.get_string_feature_value(name)
-            if isinstance(node, Aravis.GcBoolean):
-                return bool(dev.get_boolean_feature_value(name))
-            if isinstance(node, Aravis.GcFloat):
-                return float(dev.get_float_feature_value(name))
-            if isinstance(node, Aravis.GcInteger):
-                return int(dev.get_integer_feature_value(name))
-            if isinstance(node, Aravis.GcString):
-                return dev.get_string_feature_value(name)
-        raise DeviceError(
-            f"camera {self.device_id}: {name} is a {type(node).__name__}, not a value; "
-            "commands run with execute()"
-        )
+        if kind == "boolean":
+            return bool(dev.get_boolean_feature_value(name))
+        if kind == "float":
+            return float(dev.get_float_feature_value(name))
+        if kind == "integer":
+            return int(dev.get_integer_feature_value(name))
+        return dev.get_string_feature_value(name)  # enumerations and strings
+
+    def _write(self, name: str, kind: str, value: Any) -> None:
+        dev = self._dev
+        if kind == "boolean":
+            dev.set_boolean_feature_value(name, value)
+        elif kind == "float":
+            dev.set_float_feature_value(name, value)
+        elif kind == "integer":
+            dev.set_integer_feature_value(name, value)
+        else:
+            dev.set_string_feature_value(name, value)
+
+    def _limits(self, name: str, kind: str) -> tuple[float, float]:
+        if kind == "float":
+            low, high = self._dev.get_float_feature_bounds(name)
+        else:
+            low, high = self._dev.get_integer_feature_bounds(name)
+        return float(low), float(high)
+
+    def _increment(self, name: str, kind: str) -> float:
+        if kind == "float":
+            return float(self._cam.get_float_increment(name))
+        return float(self._cam.get_integer_increment(name))
+
+    def _choices(self, name: str) -> list[str]:
+        return list(self._dev.dup_available_enumeration_feature_values_as_strings(name) or [])
+
+    def _run(self, name: str) -> None:
+        self._dev.execute_command(name)
+
+    def _device_call(self, action: str) -> contextlib.AbstractContextManager[None]:
+        return self._gerror(action)
+
+    def _present(self, candidates: tuple[str, ...]) -> str | None:
+        """The first of `candidates` the device has (no reconnect: for frame records)."""
+        return next((name for name in candidates if self._kind(name) is not None), None)
 
     def set(self, name: str, value: Any) -> None:
         """Write a feature (GenICam units); numbers are checked against the feature's bounds.
@@ -510,10 +545,10 @@ class AravisCamera:
         if name == "PixelFormat":
             self.set_pixel_format(str(value))
             return
-        node = self._node(name)
+        self._feature_kind(name)
         if name in STREAM_FEATURES:
             self._stop_acquisition()
-        self._write(name, node, value)
+        value = self._write_feature(name, value)
         if name in EXPOSURE_FEATURES:
             self._exposure_set = None
         else:
@@ -523,103 +558,9 @@ class AravisCamera:
             self._gain = None
         self._settings_changed()
 
-    def _write(self, name: str, node: Any, value: Any) -> None:
-        dev = self._dev
-        where = f"camera {self.device_id}: {name}"
-        with self._gerror(f"writing {name}={value!r}"):
-            if isinstance(node, Aravis.GcEnumeration):
-                choices = dev.dup_available_enumeration_feature_values_as_strings(name) or []
-                if str(value) not in choices:
-                    raise DeviceError(f"{where}={value!r} is not one of {choices}")
-                dev.set_string_feature_value(name, str(value))
-            elif isinstance(node, Aravis.GcBoolean):
-                dev.set_boolean_feature_value(name, bool(value))
-            elif isinstance(node, Aravis.GcFloat):
-                number = self._number(where, value)
-                lo, hi = dev.get_float_feature_bounds(name)
-                if not lo <= number <= hi:
-                    raise DeviceError(f"{where}={number:g} is outside [{lo:g}, {hi:g}]")
-                dev.set_float_feature_value(name, number)
-            elif isinstance(node, Aravis.GcInteger):
-                number = self._number(where, value)
-                if number != int(number):
-                    raise DeviceError(f"{where} takes an integer, not {value!r}")
-                lo, hi = dev.get_integer_feature_bounds(name)
-                if not lo <= number <= hi:
-                    raise DeviceError(f"{where}={int(number)} is outside [{lo}, {hi}]")
-                dev.set_integer_feature_value(name, int(number))
-            elif isinstance(node, Aravis.GcString):
-                dev.set_string_feature_value(name, str(value))
-            else:
-                raise DeviceError(
-                    f"{where} is a {type(node).__name__}, not a writable value; "
-                    "commands run with execute()"
-                )
-
-    @staticmethod
-    def _number(where: str, value: Any) -> float:
-        try:
-            number = float(value)
-        except (TypeError, ValueError):
-            raise DeviceError(f"{where} takes a number, not {value!r}") from None
-        if not math.isfinite(number):
-            raise DeviceError(f"{where} takes a finite number, not {value!r}")
-        return number
-
-    def execute(self, name: str) -> None:
-        """Run a command feature (e.g. ``TriggerSoftware``, ``DeviceReset``)."""
-        self._ensure_open()
-        node = self._node(name)
-        if not isinstance(node, Aravis.GcCommand):
-            raise DeviceError(f"camera {self.device_id}: {name} is not a command; use set()")
-        with self._gerror(f"executing {name}"):
-            self._dev.execute_command(name)
-
-    # -- exposure, gain, pixel format, shape -----------------------------------------------
-    def _feature_of(self, candidates: tuple[str, ...], what: str) -> str:
-        for name in candidates:
-            if self._dev.get_feature(name) is not None:
-                return name
-        raise DeviceError(
-            f"camera {self.device_id}: no {what} feature (neither {' nor '.join(candidates)}); "
-            "labkit cannot control it on this camera: check its features with "
-            "feature_names() or use a camera that has one"
-        )
-
-    def _increment(self, name: str) -> float:
-        node = self._dev.get_feature(name)
-        if isinstance(node, Aravis.GcFloat):
-            increment = float(self._cam.get_float_increment(name))
-        else:
-            increment = float(self._cam.get_integer_increment(name))
-        return increment if math.isfinite(increment) and increment > _TINY_INCREMENT else 0.0
-
-    def exposure_bounds(self) -> Bounds:
-        """Exposure time range and increment, s (0 increment: continuous).
-
-        Raises
-        ------
-        DeviceError
-            The camera has neither ``ExposureTime`` nor ``ExposureTimeAbs``.
-        """
-        self._ensure_open()
-        feature = self._feature_of(EXPOSURE_FEATURES, "exposure-time")
-        with self._gerror(f"reading the bounds of {feature}"):
-            lo, hi = self._cam.get_exposure_time_bounds()
-            increment = self._increment(feature)
-        return Bounds(lo * 1e-6, hi * 1e-6, increment * 1e-6)
-
-    def gain_bounds(self) -> Bounds:
-        """Gain range and increment: dB for ``Gain``, device units for ``GainRaw``."""
-        self._ensure_open()
-        feature = self._feature_of(GAIN_FEATURES, "gain")
-        with self._gerror(f"reading the bounds of {feature}"):
-            lo, hi = self._cam.get_gain_bounds()
-            increment = self._increment(feature)
-        return Bounds(float(lo), float(hi), increment)
-
+    # -- gain, pixel format ----------------------------------------------------------------------
     def _read_gain(self) -> float | None:
-        if not any(self._dev.get_feature(name) is not None for name in GAIN_FEATURES):
+        if self._present(GAIN_FEATURES) is None:
             return None
         with self._gerror("reading the gain"):
             return float(self._cam.get_gain())
@@ -635,13 +576,7 @@ class AravisCamera:
         Stops the acquisition (the payload changes); the next grab restarts it.
         """
         self._ensure_open()
-        with self._gerror("listing its pixel formats"):
-            offered = list(self._cam.dup_available_pixel_formats_as_strings() or [])
-        if pixel_format not in offered:
-            raise DeviceError(
-                f"camera {self.device_id}: pixel format {pixel_format!r} is not offered; "
-                f"it offers {', '.join(offered)}"
-            )
+        offered = self._check_offered(pixel_format)
         if not _pixels.is_decodable(pixel_format):
             usable = [f for f in offered if _pixels.is_decodable(f)]
             raise DeviceError(
@@ -654,25 +589,6 @@ class AravisCamera:
             self._pixel_format = self._cam.get_pixel_format_as_string()
         self._pixel_format_wanted = pixel_format
         self._settings_changed()
-
-    @property
-    def cfa(self) -> str:
-        """CFA layout of the current pixel format, e.g. ``RGGB`` for ``BayerRG8``."""
-        try:
-            return layout_from_pixel_format(self.pixel_format)
-        except DataError:
-            raise DeviceError(
-                f"camera {self.device_id}: pixel format {self.pixel_format!r} is not a Bayer "
-                "format; choose one with set_pixel_format (e.g. BayerRG12)"
-            ) from None
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        """Image (rows, cols) of the current region of interest."""
-        self._ensure_open()
-        with self._gerror("reading its region of interest"):
-            _x, _y, width, height = self._cam.get_region()
-        return int(height), int(width)
 
     # -- stream ----------------------------------------------------------------------------------
     def _create_stream(self) -> None:
@@ -852,12 +768,7 @@ class AravisCamera:
             raise DeviceError(
                 f"camera {self.device_id}: exposure must be a number of seconds, not {exposure_s!r}"
             ) from None
-        bounds = self.exposure_bounds()
-        if not (math.isfinite(exposure_s) and bounds.contains(exposure_s)):
-            raise DeviceError(
-                f"camera {self.device_id}: exposure {exposure_s:g} s is outside the camera's "
-                f"range [{bounds.minimum:g}, {bounds.maximum:g}] s; choose an exposure within it"
-            )
+        self._check_exposure(exposure_s)
         self._prepare(exposure_s)
         return [self._grab_one(i, n, exposure_s) for i in range(n)]
 
@@ -1047,10 +958,8 @@ class AravisCamera:
                 "raw_frame_id": raw_id,
                 "acquisition": self._acquisitions,
                 "payload_bytes": len(data),
-                "exposure_feature": self._feature_of(EXPOSURE_FEATURES, "exposure-time"),
-                "gain_feature": next(
-                    (g for g in GAIN_FEATURES if self._dev.get_feature(g) is not None), None
-                ),
+                "exposure_feature": self._present(EXPOSURE_FEATURES),
+                "gain_feature": self._present(GAIN_FEATURES),
                 "settings_changed_host_time_s": self._change_ns * 1e-9,
             },
         )

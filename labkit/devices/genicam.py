@@ -43,15 +43,16 @@ import math
 import threading
 import time
 import weakref
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from labkit.cfa import layout_from_pixel_format
-from labkit.devices.camera import Bounds, CameraIdentity, DeviceInfo
-from labkit.errors import ConfigError, DataError, DeviceError
+from labkit.devices.camera import CameraIdentity, DeviceInfo
+from labkit.devices.genicam_features import EXPOSURE_FEATURES, TRIGGER_FEATURES, GenICamFeatures
+from labkit.errors import ConfigError, DeviceError
 from labkit.frame import Frame
 
 if TYPE_CHECKING:
@@ -61,21 +62,14 @@ __all__ = ["GenICamCamera", "list_devices"]
 
 BACKEND = "genicam"
 
-#: Exposure-time features, preferred first (GenICam SFNC, then the older GigE name); µs.
-EXPOSURE_FEATURES = ("ExposureTime", "ExposureTimeAbs")
-#: Gain features, preferred first: ``Gain`` is in dB, ``GainRaw`` in device units.
-GAIN_FEATURES = ("Gain", "GainRaw")
-#: The features a software trigger needs.
-TRIGGER_FEATURES = ("TriggerMode", "TriggerSource", "TriggerSoftware")
 
 #: Symbols every GenTL producer exports (checked before the library is handed to the
 #: GenTL binding, which crashes the process on a shared library that lacks them).
 _GENTL_SYMBOLS = ("GCInitLib", "TLOpen", "TLUpdateInterfaceList", "DSStartAcquisition")
 
-#: GenApi access modes (genicam.genapi.EAccessMode values).
-_NI, _NA, _WO, _RO, _RW = 0, 1, 2, 3, 4
-_ACCESS_NAMES = {_NI: "not implemented", _NA: "not available", _WO: "write-only",
-                 _RO: "read-only", _RW: "read-write"}  # fmt: skip
+#: GenApi access modes (genicam.genapi.EAccessMode values) by their names.
+_NI = 0
+_ACCESS_MODES = {0: "NI", 1: "NA", 2: "WO", 3: "RO", 4: "RW"}
 
 #: Seconds a drain fetch waits for an already-delivered buffer.
 _DRAIN_TIMEOUT_S = 0.002
@@ -265,7 +259,7 @@ def _close_device(acquirer: ImageAcquirer, cti: str) -> None:
         _release_producer(cti)
 
 
-class GenICamCamera:
+class GenICamCamera(GenICamFeatures):
     """A camera behind a GenTL producer, opened through Harvesters.
 
     Parameters
@@ -292,6 +286,10 @@ class GenICamCamera:
     """
 
     backend = BACKEND
+    no_exposure_hint = (
+        "use a fixed exposure (grab(None, n) or grab_free_running(n), a plan without "
+        "exposure times) or a camera with exposure control"
+    )
 
     def __init__(
         self,
@@ -383,27 +381,56 @@ class GenICamCamera:
         if self._closed:
             raise DeviceError(f"{self._where} is closed; open a new GenICamCamera")
 
-    def has_feature(self, name: str) -> bool:
-        """Whether the device implements feature `name` (and it is not unavailable)."""
+    # -- the node-map primitives of GenICamFeatures ---------------------------------------------
+    def _usable(self) -> None:
         self._check_open()
-        if not self._nodes.has_node(name):
-            return False
-        return self._nodes.get_node(name).node.get_access_mode() not in (_NI, _NA)
 
-    def _node(self, name: str) -> Any:
-        self._check_open()
+    def _kind(self, name: str) -> str | None:
         if not self._nodes.has_node(name):
-            raise DeviceError(
-                f"{self._where} has no feature {name!r}; see feature_names() for the "
-                f"{len(self.feature_names())} it has"
-            )
-        return self._nodes.get_node(name)
-
-    def _interface(self, node: Any) -> str:
+            return None
         from genicam.genapi import EInterfaceType
 
-        kind = node.node.principal_interface_type
+        kind = self._nodes.get_node(name).node.principal_interface_type
         return str(EInterfaceType(kind).name).removeprefix("intfI").lower()
+
+    def _access(self, name: str) -> str | None:
+        mode = self._nodes.get_node(name).node.get_access_mode()
+        return _ACCESS_MODES.get(int(mode), str(mode))
+
+    def _read(self, name: str, kind: str) -> Any:
+        return self._nodes.get_node(name).value
+
+    def _write(self, name: str, kind: str, value: Any) -> None:
+        self._nodes.get_node(name).value = value
+
+    def _limits(self, name: str, kind: str) -> tuple[float, float]:
+        node = self._nodes.get_node(name)
+        return float(node.min), float(node.max)
+
+    def _increment(self, name: str, kind: str) -> float:
+        try:
+            return float(self._nodes.get_node(name).inc)
+        except Exception:  # GenApi raises for a float without an increment
+            return 0.0
+
+    def _choices(self, name: str) -> list[str]:
+        return [str(entry) for entry in self._nodes.get_node(name).symbolics]
+
+    def _run(self, name: str) -> None:
+        self._nodes.get_node(name).execute()
+
+    def _unit(self, name: str) -> str:
+        try:
+            return str(self._nodes.get_node(name).unit)
+        except Exception:
+            return ""
+
+    @contextlib.contextmanager
+    def _device_call(self, action: str) -> Iterator[None]:
+        try:
+            yield
+        except _genicam_errors() as exc:
+            raise DeviceError(f"{self._where}: {action} failed ({_first_line(exc)})") from None
 
     @property
     def identity(self) -> CameraIdentity:
@@ -443,136 +470,7 @@ class GenICamCamera:
                 names.append(node.name)
         return names
 
-    def get(self, name: str) -> Any:
-        """Read a feature (GenICam units: µs, dB, enumeration symbol…).
-
-        Raises
-        ------
-        DeviceError
-            When the feature is missing, not readable, a command or a raw register.
-        """
-        node = self._node(name)
-        kind = self._interface(node)
-        if kind in ("command", "register", "port", "category"):
-            raise DeviceError(f"{self._where}: feature {name} is a {kind} and has no value to read")
-        access = node.node.get_access_mode()
-        if access not in (_RO, _RW):
-            raise DeviceError(
-                f"{self._where}: feature {name} is {_ACCESS_NAMES.get(access, access)} and "
-                "cannot be read now (another setting may disable it)"
-            )
-        try:
-            return node.value
-        except _genicam_errors() as exc:
-            raise DeviceError(
-                f"{self._where}: reading {name} failed ({_first_line(exc)})"
-            ) from None
-
-    def set(self, name: str, value: Any) -> None:
-        """Write a feature (GenICam units).
-
-        Raises
-        ------
-        DeviceError
-            When the feature is missing, not writable (now), a command, or the value is
-            out of range or not one of its choices.
-        """
-        node = self._node(name)
-        kind = self._interface(node)
-        if kind == "command":
-            raise DeviceError(f"{self._where}: {name} is a command; use execute({name!r})")
-        access = node.node.get_access_mode()
-        if access not in (_WO, _RW):
-            raise DeviceError(
-                f"{self._where}: feature {name} is {_ACCESS_NAMES.get(access, access)} and "
-                "cannot be written"
-                + (" (stop the acquisition or change the controlling setting first)"
-                   if access == _RO else "")
-            )  # fmt: skip
-        if kind == "enumeration":
-            choices = self._symbols(node)
-            if str(value) not in choices:
-                raise DeviceError(
-                    f"{self._where}: {name}={value!r} is not one of {choices}; pick one of those"
-                )
-            value = str(value)
-        elif kind in ("integer", "float"):
-            number = float(value)
-            low, high = node.min, node.max
-            if not (math.isfinite(number) and low <= number <= high):
-                raise DeviceError(
-                    f"{self._where}: {name}={value!r} is outside [{low:g}, {high:g}] "
-                    f"{self._unit(node)}".rstrip()
-                )
-            value = round(number) if kind == "integer" else number
-        try:
-            node.value = value
-        except _genicam_errors() as exc:
-            raise DeviceError(
-                f"{self._where}: writing {name}={value!r} failed ({_first_line(exc)})"
-            ) from None
-
-    def execute(self, name: str) -> None:
-        """Run a command feature (e.g. ``TriggerSoftware``)."""
-        node = self._node(name)
-        if self._interface(node) != "command":
-            raise DeviceError(f"{self._where}: {name} is not a command; use set()/get()")
-        try:
-            node.execute()
-        except _genicam_errors() as exc:
-            raise DeviceError(f"{self._where}: {name} failed ({_first_line(exc)})") from None
-
-    @staticmethod
-    def _symbols(node: Any) -> list[str]:
-        return [str(entry) for entry in node.symbolics]
-
-    @staticmethod
-    def _unit(node: Any) -> str:
-        try:
-            return str(node.unit)
-        except Exception:
-            return ""
-
-    def _bounds(self, name: str, scale: float) -> Bounds:
-        node = self._node(name)
-        try:
-            increment = float(node.inc)
-        except Exception:
-            increment = 0.0
-        return Bounds(float(node.min) * scale, float(node.max) * scale, increment * scale)
-
     # -- exposure and gain ---------------------------------------------------------------
-    def _exposure_feature(self) -> str:
-        for name in EXPOSURE_FEATURES:
-            if self.has_feature(name):
-                return name
-        raise DeviceError(
-            f"{self._where} has no ExposureTime or ExposureTimeAbs feature, so it cannot "
-            "capture an exposure-bracketed plan; use a fixed exposure (grab(None, n) or "
-            "grab_free_running(n), a plan without exposure times) or a camera with exposure "
-            "control"
-        )
-
-    def exposure_bounds(self) -> Bounds:
-        """Exposure time range and increment, s (from ``ExposureTime``/``ExposureTimeAbs``, µs).
-
-        Raises
-        ------
-        DeviceError
-            Naming the missing feature when the camera has no exposure control.
-        """
-        return self._bounds(self._exposure_feature(), 1e-6)
-
-    def gain_bounds(self) -> Bounds:
-        """Gain range and increment: dB from ``Gain``, device units from ``GainRaw``.
-
-        ``Bounds(0, 0)`` when the camera has neither.
-        """
-        for name in GAIN_FEATURES:
-            if self.has_feature(name):
-                return self._bounds(name, 1.0)
-        return Bounds(0.0, 0.0)
-
     def _exposure_readback_s(self) -> float:
         for name in EXPOSURE_FEATURES:
             if self.has_feature(name):
@@ -581,16 +479,6 @@ class GenICamCamera:
 
     def _gain_db(self) -> float:
         return float(self.get("Gain")) if self.has_feature("Gain") else math.nan
-
-    def _check_exposure(self, exposure_s: float) -> Bounds:
-        """Bounds of the exposure feature, s, after checking `exposure_s` lies within them."""
-        bounds = self.exposure_bounds()  # raises the missing-feature error first
-        if not (math.isfinite(exposure_s) and exposure_s > 0 and bounds.contains(exposure_s)):
-            raise DeviceError(
-                f"{self._where}: exposure {exposure_s!r} s is outside the camera's range "
-                f"[{bounds.minimum:g}, {bounds.maximum:g}] s; choose an exposure within it"
-            )
-        return bounds
 
     def _set_exposure(self, exposure_s: float) -> None:
         bounds = self._check_exposure(exposure_s)
@@ -609,10 +497,6 @@ class GenICamCamera:
         """Current GenICam pixel format, e.g. ``BayerGB12`` (Viky: ``RGBa8`` or ``Mono8``)."""
         return str(self.get("PixelFormat"))
 
-    def pixel_formats(self) -> list[str]:
-        """The pixel formats the device offers."""
-        return self._symbols(self._node("PixelFormat"))
-
     def set_pixel_format(self, pixel_format: str) -> None:
         """Choose the pixel format (stops a running acquisition first).
 
@@ -621,52 +505,19 @@ class GenICamCamera:
         DeviceError
             When the device does not offer `pixel_format` (the message lists what it offers).
         """
-        choices = self.pixel_formats()
-        if pixel_format not in choices:
-            raise DeviceError(
-                f"{self._where} has no pixel format {pixel_format!r}; it offers {choices}"
-            )
+        self._check_offered(pixel_format)
         self._stop()
         self.set("PixelFormat", pixel_format)
-
-    @property
-    def cfa(self) -> str:
-        """CFA layout of the current pixel format, e.g. ``GBRG``.
-
-        Raises
-        ------
-        DeviceError
-            When the current pixel format is not a Bayer format.
-        """
-        pixel_format = self.pixel_format
-        try:
-            return layout_from_pixel_format(pixel_format)
-        except DataError:
-            bayer = [name for name in self.pixel_formats() if name.startswith("Bayer")]
-            hint = (
-                f"select one of its Bayer formats {bayer} with set_pixel_format()"
-                if bayer
-                else "it offers no Bayer format, so it cannot capture raw colour mosaics"
-            )
-            raise DeviceError(
-                f"{self._where} delivers {pixel_format}, not a Bayer format, so it has no CFA "
-                f"layout; {hint}"
-            ) from None
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        """Image (rows, cols) = (``Height``, ``Width``)."""
-        return int(self.get("Height")), int(self.get("Width"))
 
     # -- acquisition ---------------------------------------------------------------------
     def _can_trigger(self) -> bool:
         if not all(self.has_feature(name) for name in TRIGGER_FEATURES):
             return False
         if self.has_feature("TriggerSelector"):
-            selectors = self._symbols(self._node("TriggerSelector"))
+            selectors = self._choices("TriggerSelector")
             if "FrameStart" in selectors and self.get("TriggerSelector") != "FrameStart":
                 self.set("TriggerSelector", "FrameStart")
-        return "Software" in self._symbols(self._node("TriggerSource"))
+        return "Software" in self._choices("TriggerSource")
 
     def _set_trigger(self, on: bool) -> None:
         """Put the device in software-trigger (`on`) or free-running mode."""
@@ -683,7 +534,7 @@ class GenICamCamera:
         if self._ia.is_acquiring():
             return
         if self.has_feature("AcquisitionMode"):
-            modes = self._symbols(self._node("AcquisitionMode"))
+            modes = self._choices("AcquisitionMode")
             if "Continuous" in modes and self.get("AcquisitionMode") != "Continuous":
                 self.set("AcquisitionMode", "Continuous")
         try:
