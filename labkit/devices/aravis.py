@@ -530,6 +530,9 @@ class AravisCamera(GenICamFeatures):
     def _device_call(self, action: str) -> contextlib.AbstractContextManager[None]:
         return self._gerror(action)
 
+    def _stop_for_change(self) -> None:
+        self._stop_acquisition()
+
     def _present(self, candidates: tuple[str, ...]) -> str | None:
         """The first of `candidates` the device has (no reconnect: for frame records)."""
         return next((name for name in candidates if self._kind(name) is not None), None)
@@ -646,26 +649,20 @@ class AravisCamera(GenICamFeatures):
     def _ensure_acquisition(self) -> None:
         if self._acquiring:
             return
-        cam = self._cam
         with contextlib.suppress(GLib.GError):  # a previous program may have left it running
-            cam.stop_acquisition()
-        with self._gerror("configuring the software trigger"):
-            if not cam.is_software_trigger_supported():
-                raise DeviceError(
-                    f"camera {self.device_id}: no software trigger (TriggerSoftware with "
-                    "TriggerSource=Software); labkit needs one to time exposures"
-                )
-            cam.set_acquisition_mode(Aravis.AcquisitionMode.CONTINUOUS)
-            cam.set_trigger("Software")
-            # bracketing needs the exposure and gain it asks for, not the camera's choice
-            if cam.is_exposure_auto_available():
-                cam.set_exposure_time_auto(Aravis.Auto.OFF)
-            if cam.is_gain_auto_available():
-                cam.set_gain_auto(Aravis.Auto.OFF)
+            self._cam.stop_acquisition()
+        if not self._software_trigger_available():
+            raise DeviceError(
+                f"camera {self.device_id}: no software trigger (TriggerSoftware with "
+                "TriggerSource=Software); labkit needs one to time exposures"
+            )
+        self._continuous_acquisition()
+        self._use_software_trigger(True)
+        self._manual_exposure_and_gain()
         if self._stream is None:
             self._create_stream()
         with self._gerror("starting the acquisition"):
-            cam.start_acquisition()
+            self._cam.start_acquisition()
         self._acquiring = True
         self._acquisitions += 1
         self._outstanding = 0
@@ -727,9 +724,8 @@ class AravisCamera(GenICamFeatures):
         """Start the acquisition if needed and set the exposure (draining on a change)."""
         self._ensure_acquisition()
         if self._exposure_set != exposure_s:
-            with self._gerror(f"setting the exposure to {_format_s(exposure_s)} s"):
-                self._cam.set_exposure_time(exposure_s * 1e6)
-                self._exposure_readback = float(self._cam.get_exposure_time()) * 1e-6
+            self._set_exposure(exposure_s)
+            self._exposure_readback = self._exposure_readback_s()
             self._exposure_set = exposure_s
             self._settings_changed()
         if self._gain is None:

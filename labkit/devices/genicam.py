@@ -51,7 +51,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from labkit.devices.camera import CameraIdentity, DeviceInfo
-from labkit.devices.genicam_features import EXPOSURE_FEATURES, TRIGGER_FEATURES, GenICamFeatures
+from labkit.devices.genicam_features import GenICamFeatures
 from labkit.errors import ConfigError, DeviceError
 from labkit.frame import Frame
 
@@ -471,25 +471,8 @@ class GenICamCamera(GenICamFeatures):
         return names
 
     # -- exposure and gain ---------------------------------------------------------------
-    def _exposure_readback_s(self) -> float:
-        for name in EXPOSURE_FEATURES:
-            if self.has_feature(name):
-                return float(self.get(name)) * 1e-6
-        return math.nan
-
     def _gain_db(self) -> float:
         return float(self.get("Gain")) if self.has_feature("Gain") else math.nan
-
-    def _set_exposure(self, exposure_s: float) -> None:
-        bounds = self._check_exposure(exposure_s)
-        name = self._exposure_feature()
-        if self.has_feature("ExposureAuto") and self.get("ExposureAuto") != "Off":
-            self.set("ExposureAuto", "Off")
-        low, high, step = bounds.minimum * 1e6, bounds.maximum * 1e6, bounds.increment * 1e6
-        micro = min(max(exposure_s * 1e6, low), high)
-        if step > 0:
-            micro = min(low + round((micro - low) / step) * step, high)
-        self.set(name, micro)
 
     # -- image format --------------------------------------------------------------------
     @property
@@ -510,33 +493,10 @@ class GenICamCamera(GenICamFeatures):
         self.set("PixelFormat", pixel_format)
 
     # -- acquisition ---------------------------------------------------------------------
-    def _can_trigger(self) -> bool:
-        if not all(self.has_feature(name) for name in TRIGGER_FEATURES):
-            return False
-        if self.has_feature("TriggerSelector"):
-            selectors = self._choices("TriggerSelector")
-            if "FrameStart" in selectors and self.get("TriggerSelector") != "FrameStart":
-                self.set("TriggerSelector", "FrameStart")
-        return "Software" in self._choices("TriggerSource")
-
-    def _set_trigger(self, on: bool) -> None:
-        """Put the device in software-trigger (`on`) or free-running mode."""
-        if on:
-            if self.get("TriggerSource") != "Software" or self.get("TriggerMode") != "On":
-                self._stop()
-                self.set("TriggerSource", "Software")
-                self.set("TriggerMode", "On")
-        elif self.has_feature("TriggerMode") and self.get("TriggerMode") != "Off":
-            self._stop()
-            self.set("TriggerMode", "Off")
-
     def _start(self) -> None:
         if self._ia.is_acquiring():
             return
-        if self.has_feature("AcquisitionMode"):
-            modes = self._choices("AcquisitionMode")
-            if "Continuous" in modes and self.get("AcquisitionMode") != "Continuous":
-                self.set("AcquisitionMode", "Continuous")
+        self._continuous_acquisition()
         try:
             self._ia.start()
         except Exception as exc:
@@ -550,6 +510,9 @@ class GenICamCamera(GenICamFeatures):
     def _stop(self) -> None:
         if not self._closed and self._ia.is_acquiring():
             self._ia.stop()
+
+    def _stop_for_change(self) -> None:
+        self._stop()
 
     def _drain(self) -> int | None:
         """Fetch and discard buffers already delivered; return the largest frame id seen."""
@@ -601,7 +564,7 @@ class GenICamCamera(GenICamFeatures):
             raise ConfigError(f"{self._where}: grab needs n >= 1 frames, got {n!r}")
         if exposure_s is not None:
             self._check_exposure(exposure_s)  # missing feature or out of range: no capture
-        return self._capture(exposure_s, int(n), trigger=self._can_trigger())
+        return self._capture(exposure_s, int(n), trigger=self._software_trigger_available())
 
     def grab_free_running(self, n: int = 1, exposure_s: float | None = None) -> list[Frame]:
         """Capture `n` frames without a trigger, at the configured (or given) exposure.
@@ -617,7 +580,7 @@ class GenICamCamera(GenICamFeatures):
         return self._capture(exposure_s, int(n), trigger=False)
 
     def _capture(self, exposure_s: float | None, n: int, *, trigger: bool) -> list[Frame]:
-        self._set_trigger(trigger)
+        self._use_software_trigger(trigger)
         if not trigger:
             self._stop()  # flushes every buffer in flight
         if exposure_s is not None:

@@ -10,12 +10,16 @@ own discovery and streaming. What they share lives here, in :class:`GenICamFeatu
   camera, the feature and what it accepts;
 * running a command feature;
 * the exposure and gain features and their bounds, the pixel formats the camera offers,
-  the CFA layout of its pixel format, and the image size.
+  the CFA layout of its pixel format, and the image size;
+* what a bracketed capture needs from the camera: continuous acquisition, a frame-start
+  software trigger, exposure and gain under manual control, and an exposure time set to
+  the nearest step the camera allows.
 
 A backend subclasses :class:`GenICamFeatures` and provides the node-map primitives (its
 abstract methods): what kind of node a feature is, its access mode, reading, writing,
-bounds, increment, choices and running a command, and a context that turns the library's
-errors into :class:`~labkit.errors.DeviceError`.
+bounds, increment, choices and running a command, a context that turns the library's
+errors into :class:`~labkit.errors.DeviceError`, and how to stop a running acquisition
+before a setting that needs it stopped.
 """
 
 from __future__ import annotations
@@ -131,6 +135,10 @@ class GenICamFeatures(abc.ABC):
     @abc.abstractmethod
     def pixel_format(self) -> str:
         """The current GenICam pixel format, e.g. ``BayerRG12p``."""
+
+    @abc.abstractmethod
+    def _stop_for_change(self) -> None:
+        """Stop a running acquisition (the trigger settings are locked while it runs)."""
 
     # -- features --------------------------------------------------------------------------------
     def has_feature(self, name: str) -> bool:
@@ -354,3 +362,55 @@ class GenICamFeatures(abc.ABC):
     def shape(self) -> tuple[int, int]:
         """Image (rows, cols) = (``Height``, ``Width``) of the current region of interest."""
         return int(self.get("Height")), int(self.get("Width"))
+
+    # -- what a bracketed capture needs ----------------------------------------------------------
+    def _set_if_offered(self, name: str, value: str) -> None:
+        """Set enumeration `name` to `value` where the camera has it and offers `value`."""
+        if self.has_feature(name) and value in self._choices(name) and self.get(name) != value:
+            self._write_feature(name, value)
+
+    def _continuous_acquisition(self) -> None:
+        """``AcquisitionMode`` = ``Continuous`` where the camera offers it."""
+        self._set_if_offered("AcquisitionMode", "Continuous")
+
+    def _manual_exposure_and_gain(self) -> None:
+        """``ExposureAuto`` and ``GainAuto`` off: bracketing needs the values it asks for."""
+        self._set_if_offered("ExposureAuto", "Off")
+        self._set_if_offered("GainAuto", "Off")
+
+    def _software_trigger_available(self) -> bool:
+        """Whether frames can be software-triggered (selecting the ``FrameStart`` trigger)."""
+        if not all(self.has_feature(name) for name in TRIGGER_FEATURES):
+            return False
+        self._set_if_offered("TriggerSelector", "FrameStart")
+        return "Software" in self._choices("TriggerSource")
+
+    def _use_software_trigger(self, on: bool) -> None:
+        """Software-triggered frames (`on`) or free running; stops the acquisition to change."""
+        if on:
+            if self.get("TriggerSource") != "Software" or self.get("TriggerMode") != "On":
+                self._stop_for_change()
+                self._write_feature("TriggerSource", "Software")
+                self._write_feature("TriggerMode", "On")
+        elif self.has_feature("TriggerMode") and self.get("TriggerMode") != "Off":
+            self._stop_for_change()
+            self._write_feature("TriggerMode", "Off")
+
+    def _set_exposure(self, exposure_s: float) -> None:
+        """Exposure time `exposure_s` (s), at the nearest step the camera allows, with
+        automatic exposure and gain off."""
+        bounds = self._check_exposure(exposure_s)
+        name = self._exposure_feature()
+        self._manual_exposure_and_gain()
+        scale = 1.0 / EXPOSURE_UNIT_S
+        low, high = bounds.minimum * scale, bounds.maximum * scale
+        step = bounds.increment * scale
+        value = min(max(exposure_s * scale, low), high)
+        if step > 0:
+            value = min(low + round((value - low) / step) * step, high)
+        self._write_feature(name, value)
+
+    def _exposure_readback_s(self) -> float:
+        """The exposure feature read back, s (NaN without one)."""
+        name = self._first_feature(EXPOSURE_FEATURES)
+        return math.nan if name is None else float(self.get(name)) * EXPOSURE_UNIT_S

@@ -253,5 +253,5 @@ def test_genicam_camera_without_exposure_control_fails_before_capturing(tmp_path
     )
     result = _labkit("capture", str(rig), "--session", str(tmp_path / "s"), "--yes")
     assert result.returncode == 2 and "Traceback" not in result.stderr
-    assert "has no ExposureTime or ExposureTimeAbs feature" in result.stderr
+    assert "has no exposure-time feature (neither ExposureTime nor ExposureTimeAbs)" in result.stderr
     assert not (tmp_path / "s").exists()
