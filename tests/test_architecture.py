@@ -23,7 +23,7 @@ DEFERRING_MODULES = ("labkit.cli", "labkit.bench", "labkit.demo", "labkit.demo_r
 
 #: Imports inside functions of library modules, and why each is there.
 DEFERRED_IMPORTS = {
-    ("calibration.sensitivity", "labkit.plots"): "matplotlib, for the one function that plots",
+    ("calibration.sensitivity.plot", "labkit.plots"): "matplotlib, for the one function that plots",
     ("labkit.io.preview", "labkit.spectra.conversion"): (
         "the spectral tables, for spectral previews only: most users of labkit.io write raw images"
     ),
