@@ -21,11 +21,11 @@ from calibration.registration import (
     MAX_ERROR,
     MIN_TEXTURE,
     PatchShifts,
-    _patch_grid,
     channel_registration_keypoints,
     patch_shifts,
     registration_keypoints,
 )
+from calibration.registration.shifts import _patch_grid
 from labkit.cfa import mosaic
 from labkit.errors import DataError
 from labkit.io.exr import RawImage
