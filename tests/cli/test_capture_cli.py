@@ -253,5 +253,6 @@ def test_genicam_camera_without_exposure_control_fails_before_capturing(tmp_path
     )
     result = _labkit("capture", str(rig), "--session", str(tmp_path / "s"), "--yes")
     assert result.returncode == 2 and "Traceback" not in result.stderr
-    assert "has no exposure-time feature (neither ExposureTime nor ExposureTimeAbs)" in result.stderr
+    missing = "has no exposure-time feature (neither ExposureTime nor ExposureTimeAbs)"
+    assert missing in result.stderr
     assert not (tmp_path / "s").exists()
