@@ -27,271 +27,86 @@ exponent p of time ∝ pixels^p fitted in log–log (issue 7: close to 1, held t
 from __future__ import annotations
 
 import os
-import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from labkit.bench.harness import Measurement, Plot, Table, fit_exponent, peak_rss_mib
+from labkit.bench.harness import Measurement, Plot, Table
 from labkit.bench.plots import plot_scaling, plot_time_vs_error
 from labkit.bench.real_frames import (
     MAIN_VARIANTS,
     comparison_table,
-    patch_cost,
     patch_cost_table,
     real_measurements,
 )
-from labkit.rig import load_rig
+from labkit.bench.reconstruct_cases import (
+    NOISE,
+    SHAPE,
+    VARIANT_SHAPE,
+    case_bands,
+    edge_errors,
+    run_case,
+    run_isolated,
+    simulated_case,
+    to_measurement,
+)
+from labkit.bench.reconstruct_scaling import (
+    ROUTINE_SCALING_SIZES,
+    SCALING_SIZES,
+    scaling_cases,
+    scaling_summary,
+    scaling_table,
+)
 
 TARGET_S = 10.0
 FULL_TARGET_S = 600.0
 FULL_MEMORY_MIB = 4096.0
-"""Peak memory target of the full-size case (measured in a fresh process, simulation apart)."""
-SHAPE = (344, 408)
-VARIANT_SHAPE = (172, 204)
-NOISE = 0.002
-"""Gaussian noise, fraction of the brightest raw value."""
-SCALING_SIZES = (256, 512, 1024, 2048)
-"""Sides of the square images of the scaling sweep, px (``full`` runs)."""
-ROUTINE_SCALING_SIZES = (256, 512)
-"""The sweep's sides without ``full``, px."""
-SCALING_EXPONENT_MAX = 1.2
-"""Largest fitted exponent p of time ∝ pixels^p that passes."""
-SHORT_S = 30.0
-"""A scaling size whose first run is shorter than this (s) is repeated (median)."""
 TIME_ERROR_PNG = "reconstruct_time_vs_error.png"
 REAL_TIME_ERROR_PNG = "reconstruct_real_vs_simulated.png"
 SCALING_PNG = "reconstruct_scaling.png"
 
 
-class LensField:
-    """The lens' first-order ``to_reference`` field e(q, λ) = −u(q)(s(λ) − s(λ_ref))."""
-
-    kind = "simulated lens (first order)"
-
-    def __init__(self, lens, reference_nm: float) -> None:
-        self.lens = lens
-        self.reference = float(lens.spectral_factor(reference_nm))
-
-    def evaluate(self, points: np.ndarray) -> np.ndarray:
-        ux, uy = self.lens.radial_field(points[:, 0], points[:, 1])
-        s = self.lens.spectral_factor(points[:, 2]) - self.reference
-        return -np.stack([ux * s, uy * s], axis=1)
-
-    def to_dict(self) -> dict:
-        return {"kind": self.kind}
-
-
-def lens_model(lens, *, reference_nm: float = 600.0):
-    """An analytic ``to_reference`` spectral dispersion model of a simulated lens."""
-    from calibration.dispersion_model import CalibratedRegion, DispersionModel
-
-    rows, cols = lens.shape
-    x, y = np.meshgrid([0.0, cols - 1.0], [0.0, rows - 1.0])
-    return DispersionModel(
-        type="simulated",
-        variables="xylambda",
-        direction="to_reference",
-        reference=reference_nm,
-        image_shape=(rows, cols),
-        fields={"spectral": LensField(lens, reference_nm)},
-        region=CalibratedRegion.from_points(x, y, np.array([400.0, 700.0])),
-    )
-
-
-def simulated_case(
-    rig_path: Path, shape: tuple[int, int], scene: str, *, seed: int = 1, flat_fraction: float = 0
-) -> dict[str, Any]:
-    """Raw image, dispersion model and ground truth of one simulated scene.
-
-    `flat_fraction` > 0 replaces that fraction of the columns (on the right) by a flat grey
-    wall, for the adaptive-skipping comparison.
-    """
-    from labkit.cfa import mosaic
-    from labkit.sim import SimulatedRig
-    from labkit.sim.truth import colour_truth, spectral_truth
-
-    rig = load_rig(rig_path)
-    world = SimulatedRig(rig, shape=shape)
-    colour = colour_truth(world, scene)
-    irradiance = world.irradiance(scene, "unfiltered").astype(np.float64)
-    wall = np.zeros(shape, dtype=bool)
-    if flat_fraction > 0:
-        first = round(shape[1] * (1 - flat_fraction) / 2) * 2
-        grey = colour[:, first:].mean(axis=(0, 1))
-        colour[:, first:] = grey
-        irradiance[:, first:] = mosaic(colour[:, first:], rig.cfa)
-        wall[:, first:] = True
-    exposure = 1.0 / float(irradiance.mean())
-    rng = np.random.default_rng(seed)
-    raw = irradiance * exposure
-    raw = raw + rng.normal(0.0, NOISE * raw.max(), raw.shape)
-
-    def truth(bands_nm: np.ndarray) -> np.ndarray:
-        """Reflectance × band-averaged light at `bands_nm` (rows, cols, n), raw units."""
-        cube = spectral_truth(world, scene, bands_nm, scale=exposure)
-        cube[wall] = np.nan  # the grey wall has no spectral truth
-        return cube
-
-    case = {
-        "raw": raw,
-        "cfa": rig.cfa,
-        "response": world.response,
-        "model": lens_model(world.lens),
-        "colour": colour * exposure,
-        "truth": truth,
-        "max_shift_px": float(rig.sim.lens.max_shift_px),
-    }
-    if scene == "colorchecker" and flat_fraction == 0:
-        from labkit.sim.scenes import colorchecker_patch_boxes
-        from reconstruction.residual_aberration import STRIP_PX
-
-        boxes = colorchecker_patch_boxes(world.scene(scene))
-        if np.min(boxes[:, 2:] - boxes[:, :2]) > 2 * STRIP_PX + 2:  # patches have centres
-            case["boxes"] = boxes
-    return case
-
-
-def edge_errors(case: dict[str, Any], raw_colour: np.ndarray) -> dict[str, float]:
-    """Residual aberration (§4.4.3): RMSE per channel in the ColorChecker's edge strips."""
-    from reconstruction import residual_aberration
-
-    measure = residual_aberration(raw_colour, case["raw"], cfa=case["cfa"], boxes=case["boxes"])
-    return {f"edge_rmse_{c}": float(v) for c, v in zip("RGB", measure.edge.rmse, strict=True)}
-
-
-def errors(case: dict[str, Any], result) -> dict[str, float]:
-    """Spectral RMSE/MRAE/GOF (registered, 8-px border left out), colour RMSE per channel,
-    and on the ColorChecker the edge-strip RMSE per channel (:func:`edge_errors`)."""
-    from reconstruction.metrics import colour_errors, spectral_errors
-
-    inner = (slice(8, -8), slice(8, -8))
-    truth = case["truth"](result.wavelengths_nm)[inner]
-    estimate = result.spectral[inner].astype(np.float64)
-    valid = np.all(np.isfinite(truth), axis=-1)
-    spectral = spectral_errors(
-        np.where(valid[..., None], truth, 0.0), estimate, mask=valid, ssim=False, register=True
-    )
-    colour = colour_errors(case["colour"][inner], result.raw_colour[inner], ssim=False)
-    peak = float(np.max(case["colour"][inner]))
-    return {
-        "spectral_rmse_rel": spectral.rmse_global / float(np.mean(truth[valid])),
-        "spectral_mrae": spectral.mrae,
-        "spectral_gof": spectral.gof,
-        **{f"colour_rmse_{c}": float(v) / peak for c, v in zip("RGB", colour.rmse, strict=True)},
-        **(edge_errors(case, result.raw_colour) if "boxes" in case else {}),
-    }
-
-
-def _run(case: dict[str, Any], **options) -> tuple[Any, float]:
-    from reconstruction import reconstruct
-
-    start = time.perf_counter()
-    result = reconstruct(case["raw"], cfa=case["cfa"], response=case["response"], **options)
-    return result, time.perf_counter() - start
-
-
-def _peak_rss_self_mib() -> float:
-    """This process' own peak resident set, MiB.
-
-    ``VmHWM``: ``ru_maxrss`` would include the parent's peak, which the kernel carries over
-    into a child that was (v)forked and then exec'd (``spawn``).
-    """
-    import resource
-
-    try:
-        with open("/proc/self/status") as status:
-            return next(int(ln.split()[1]) for ln in status if ln.startswith("VmHWM")) / 1024
-    except (OSError, StopIteration):
-        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-
-
-def _isolated(
-    case: dict[str, Any], options: dict[str, Any], repeats: int, short_s: float
-) -> tuple[Any, list[float], dict[str, list[float]], float]:
-    """:func:`_run` in this (child) process, repeated if short; see :func:`_run_isolated`."""
-    from labkit.bench.harness import repeat_timed
-
-    seconds: list[float] = []
-    phases: dict[str, list[float]] = {"weight_s": [], "solve_s": []}
-
-    def once() -> Any:
-        result, elapsed = _run(case, **options)
-        seconds.append(elapsed)
-        phases["weight_s"].append(float(result.log["weights"]["seconds"]))
-        phases["solve_s"].append(float(result.log["solve_seconds"]))
-        return result
-
-    result, _, _ = repeat_timed(once, repeats=repeats, short_s=short_s)
-    return result, seconds, phases, _peak_rss_self_mib()
-
-
-def _run_isolated(
-    case: dict[str, Any], *, repeats: int = 1, short_s: float = 0.0, **options
-) -> tuple[Any, list[float], dict[str, list[float]], float]:
-    """:func:`_run` in a fresh process, so its peak memory leaves out the simulation's.
-
-    Returns
-    -------
-    result : Reconstruction
-        The first run's.
-    times : list of float
-        Every run's total time, s: `repeats` runs if the first took less than `short_s`
-        seconds, else one.
-    phases : dict
-        ``weight_s`` and ``solve_s``: every run's time in weight selection and in the
-        patch solves, s.
-    peak : float
-        The process' peak resident set, MiB.
-    """
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
-
-    inputs = {key: case[key] for key in ("raw", "cfa", "response")}  # the truth won't pickle
-    context = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(max_workers=1, mp_context=context) as pool:
-        return pool.submit(_isolated, inputs, options, repeats, short_s).result()
-
-
-def _bands(case: dict[str, Any], count: int) -> np.ndarray:
-    from reconstruction import LatentSpace
-
-    default = LatentSpace.spectral(case["response"]).centres_nm
-    return np.linspace(default[0], default[-1], count)
-
-
-def _measurement(name, seconds, times, target, case, result, extra, peak=None) -> Measurement:
-    log = result.log
-    peak = peak_rss_mib() if peak is None else peak
-    passed = None if target is None else seconds <= target
-    if passed is not None and "memory_target_mib" in extra:
-        passed = passed and peak <= extra["memory_target_mib"]
-    return Measurement(
-        name,
-        seconds,
-        times,
-        peak,
-        target,
-        passed,
-        {
-            **extra,
-            **errors(case, result),
-            "weights": [float(w) for w in log["weights"]["values"]],
-            "weight_s": float(log["weights"]["seconds"]),
-            "patches": log["patches"]["count"],
-            "phi_used": log["patches"]["phi_used"],
-            "flat": log["patches"]["flat"],
-            "iterations_median": log["patches"]["iterations_median"],
-            "converged": log["patches"]["converged"],
-            "patch_cost": patch_cost(log["patch_records"]),
-        },
-    )
-
-
 def full_run(full: bool | None = None) -> bool:
     """Whether the slow cases run: `full` if given, else ``LABKIT_BENCH_FULL=1``."""
     return os.environ.get("LABKIT_BENCH_FULL") == "1" if full is None else bool(full)
+
+
+#: The target case's image (rows, cols) and scene, and its name in the bench tables.
+MAIN_IMAGE = "344×408 ColorChecker, 7 bands"
+
+#: Solver knobs, each run once on the small textured image at the weight the target case
+#: chose (so that they compare solver settings, not weight selection): (label, options,
+#: number of bands).
+SOLVER_VARIANTS: tuple[tuple[str, dict[str, Any], int], ...] = (
+    ("L2, 7 bands, rtol 1e-5 (default)", {"prior": "L2"}, 7),
+    ("L2, 7 bands, rtol 1e-4", {"prior": "L2", "rtol": 1e-4}, 7),
+    ("L2, 7 bands, rtol 1e-3", {"prior": "L2", "rtol": 1e-3}, 7),
+    ("L2, 5 bands", {"prior": "L2"}, 5),
+    ("L2, 9 bands", {"prior": "L2"}, 9),
+    ("Lap2, 7 bands", {"prior": "Lap2"}, 7),
+    ("L1, 7 bands", {"prior": "L1"}, 7),
+    ("L2, 7 bands, no Φ", {"prior": "L2", "dispersion": None}, 7),
+    ("L2, 7 bands, Φ-free then warp (§3.9.2)", {"prior": "L2", "correction": "warp"}, 7),
+    ("L2, 7 bands, exact (active-set finish)", {"prior": "L2", "exact": True}, 7),
+    ("L2, 7 bands, cubic Φ", {"prior": "L2", "interpolation": "cubic"}, 7),
+    ("L2, 7 bands, σ = 0 (thesis)", {"prior": "L2", "spectral_smoothness": 0.0}, 7),
+    ("L2, 7 bands, σ = 0, exact", {"prior": "L2", "spectral_smoothness": 0.0, "exact": True}, 7),
+    (
+        "VTV (w 0.02), 7 bands, cubic Φ",
+        {"prior": "VTV", "interpolation": "cubic", "weights": "fixed:0.02"},
+        7,
+    ),
+    ("L2, 7 bands, patch 128", {"prior": "L2", "patch_px": 128, "pad_px": 16}, 7),
+)
+
+#: Adaptive skipping of flat patches, on 344×408 textured scenes at the target case's
+#: weight: (label, fraction of the image left flat, options).
+SKIPPING_SCENES: tuple[tuple[str, float, dict[str, Any]], ...] = (
+    ("fully textured", 0.0, {}),
+    ("80 % flat", 0.8, {}),
+    ("80 % flat, no skipping", 0.8, {"flat_threshold": None}),
+)
 
 
 def bench_reconstruct(
@@ -318,135 +133,136 @@ def bench_reconstruct(
         Shown under the stage's heading.
     """
     full = full_run(full)
-    results: list[Measurement] = []
     main_case = simulated_case(rig_path, SHAPE, "colorchecker")
-    bands7 = _bands(main_case, 7)
-    main_options = {"bands": bands7, "dispersion": main_case["model"], "prior": "L2"}
-    # the default problem, then the main variants on this image and on the real frames
+    simulated_main = _main_variants(main_case, repeats)
+    weights = f"fixed:{simulated_main[0].extra['weights'][0]:.6g}"
+    real_main, real_baselines = real_measurements()
+    variant_results = _solver_variants(rig_path, weights)
+    skipping_results = _skipping_scenes(rig_path, weights, case_bands(main_case, 7))
+    full_results = [_full_size_case(rig_path)] if full else []
+    per_size = scaling_cases(
+        rig_path, SCALING_SIZES if full else ROUTINE_SCALING_SIZES, repeats=repeats
+    )
+    summary = scaling_summary(per_size)
+    results = [
+        *simulated_main,
+        *real_main,
+        *variant_results,
+        *skipping_results,
+        *full_results,
+        *per_size,
+        summary,
+    ]
+    notes = _notes(
+        main_case, weights, skipping_results, real_main, simulated_main, real_baselines, full
+    )
+    notes.append(scaling_table(per_size, summary))
+    if out is not None:
+        notes += _plots(Path(out), variant_results, real_main, simulated_main, per_size, summary)
+    return results, notes
+
+
+def _case_measurement(
+    case: dict[str, Any], name: str, extra: dict[str, Any], **options: Any
+) -> Measurement:
+    """One run of `case` with `options`, measured without a target."""
+    result, seconds = run_case(case, **options)
+    return to_measurement(name, seconds, [seconds], None, case, result, extra)
+
+
+def _main_variants(main_case: dict[str, Any], repeats: int) -> list[Measurement]:
+    """The target case (median of `repeats` runs), then the other main variants."""
+    options = {"bands": case_bands(main_case, 7), "dispersion": main_case["model"], "prior": "L2"}
+    image = {"image": "408×344", "bands": 7}
     times, result = [], None
     for _ in range(max(1, repeats)):
-        result, seconds = _run(main_case, **main_options)
+        result, seconds = run_case(main_case, **options)
         times.append(seconds)
-    results.append(
-        _measurement(
-            "344×408 ColorChecker, 7 bands, L2, nonneg, Φ, auto:dmc",
+    label = MAIN_VARIANTS[0][0]
+    measured = [
+        to_measurement(
+            f"{MAIN_IMAGE}, L2, nonneg, Φ, auto:dmc",
             float(np.median(times)),
             times,
             TARGET_S,
             main_case,
             result,
-            {"image": "408×344", "bands": 7, "variant": MAIN_VARIANTS[0][0]},
+            {**image, "variant": label},
         )
-    )
-    weights = f"fixed:{result.log['weights']['values'][0]:.6g}"
-    simulated_main = [results[-1]]
-    for label, extra in MAIN_VARIANTS[1:]:
-        variant, seconds = _run(main_case, **{**main_options, **extra})
-        simulated_main.append(
-            _measurement(
-                f"344×408 ColorChecker, 7 bands, {label}",
-                seconds,
-                [seconds],
-                None,
-                main_case,
-                variant,
-                {"image": "408×344", "bands": 7, "variant": label},
-            )
-        )
-    results += simulated_main[1:]
-    real_main, real_baselines = real_measurements()
-    results += real_main
-
-    variant_case = simulated_case(rig_path, VARIANT_SHAPE, "texture")
-    variants = [
-        ("L2, 7 bands, rtol 1e-5 (default)", {"prior": "L2"}, 7),
-        ("L2, 7 bands, rtol 1e-4", {"prior": "L2", "rtol": 1e-4}, 7),
-        ("L2, 7 bands, rtol 1e-3", {"prior": "L2", "rtol": 1e-3}, 7),
-        ("L2, 5 bands", {"prior": "L2"}, 5),
-        ("L2, 9 bands", {"prior": "L2"}, 9),
-        ("Lap2, 7 bands", {"prior": "Lap2"}, 7),
-        ("L1, 7 bands", {"prior": "L1"}, 7),
-        ("L2, 7 bands, no Φ", {"prior": "L2", "dispersion": None}, 7),
-        ("L2, 7 bands, Φ-free then warp (§3.9.2)", {"prior": "L2", "correction": "warp"}, 7),
-        ("L2, 7 bands, exact (active-set finish)", {"prior": "L2", "exact": True}, 7),
-        ("L2, 7 bands, cubic Φ", {"prior": "L2", "interpolation": "cubic"}, 7),
-        ("L2, 7 bands, σ = 0 (thesis)", {"prior": "L2", "spectral_smoothness": 0.0}, 7),
-        (
-            "L2, 7 bands, σ = 0, exact",
-            {"prior": "L2", "spectral_smoothness": 0.0, "exact": True},
-            7,
-        ),
-        (
-            "VTV (w 0.02), 7 bands, cubic Φ",
-            {"prior": "VTV", "interpolation": "cubic", "weights": "fixed:0.02"},
-            7,
-        ),
-        ("L2, 7 bands, patch 128", {"prior": "L2", "patch_px": 128, "pad_px": 16}, 7),
     ]
-    variant_results: list[Measurement] = []
-    for name, options, count in variants:
-        options = {"dispersion": variant_case["model"], "weights": weights, **options}
-        result, seconds = _run(variant_case, bands=_bands(variant_case, count), **options)
-        variant_results.append(
-            _measurement(
-                f"204×172 texture, {name}",
-                seconds,
-                [seconds],
-                None,
-                variant_case,
-                result,
-                {"image": "204×172", "bands": count},
+    for label, extra in MAIN_VARIANTS[1:]:
+        measured.append(
+            _case_measurement(
+                main_case,
+                f"{MAIN_IMAGE}, {label}",
+                {**image, "variant": label},
+                **{**options, **extra},
             )
         )
-    results += variant_results
+    return measured
 
-    scenes = (
-        ("fully textured", 0.0, {}),
-        ("80 % flat", 0.8, {}),
-        ("80 % flat, no skipping", 0.8, {"flat_threshold": None}),
-    )
-    for label, fraction, skipping in scenes:
+
+def _solver_variants(rig_path: Path, weights: str) -> list[Measurement]:
+    """:data:`SOLVER_VARIANTS` on the small textured image."""
+    case = simulated_case(rig_path, VARIANT_SHAPE, "texture")
+    return [
+        _case_measurement(
+            case,
+            f"204×172 texture, {name}",
+            {"image": "204×172", "bands": count},
+            bands=case_bands(case, count),
+            **{"dispersion": case["model"], "weights": weights, **options},
+        )
+        for name, options, count in SOLVER_VARIANTS
+    ]
+
+
+def _skipping_scenes(rig_path: Path, weights: str, bands: np.ndarray) -> list[Measurement]:
+    """:data:`SKIPPING_SCENES`, with the target case's bands and weight."""
+    measured = []
+    for label, fraction, skipping in SKIPPING_SCENES:
         case = simulated_case(rig_path, SHAPE, "texture", flat_fraction=fraction)
-        result, seconds = _run(
-            case, bands=bands7, dispersion=case["model"], weights=weights, prior="L2", **skipping
-        )
-        results.append(
-            _measurement(
-                f"344×408 texture, {label}",
-                seconds,
-                [seconds],
-                None,
+        measured.append(
+            _case_measurement(
                 case,
-                result,
+                f"344×408 texture, {label}",
                 {"image": "408×344", "flat_fraction": fraction},
+                bands=bands,
+                dispersion=case["model"],
+                weights=weights,
+                prior="L2",
+                **skipping,
             )
         )
-    skipping = skipping_line(results[-2], results[-1])
+    return measured
 
-    if full:
-        full_case = simulated_case(rig_path, (2048, 2448), "colorchecker")
-        result, times, _, peak = _run_isolated(
-            full_case, bands=_bands(full_case, 8), dispersion=full_case["model"]
-        )
-        results.append(
-            _measurement(
-                "2448×2048 ColorChecker, 8 bands, L2, nonneg, Φ, auto:dmc",
-                times[0],
-                times,
-                FULL_TARGET_S,
-                full_case,
-                result,
-                {"image": "2448×2048", "bands": 8, "memory_target_mib": FULL_MEMORY_MIB},
-                peak,
-            )
-        )
-        del full_case
 
-    sizes = SCALING_SIZES if full else ROUTINE_SCALING_SIZES
-    per_size = scaling_cases(rig_path, sizes, repeats=repeats)
-    summary = scaling_summary(per_size)
-    results += [*per_size, summary]
+def _full_size_case(rig_path: Path) -> Measurement:
+    """The full 2448×2048 ColorChecker with default options, in a fresh process."""
+    case = simulated_case(rig_path, (2048, 2448), "colorchecker")
+    result, times, _, peak = run_isolated(case, bands=case_bands(case, 8), dispersion=case["model"])
+    return to_measurement(
+        "2448×2048 ColorChecker, 8 bands, L2, nonneg, Φ, auto:dmc",
+        times[0],
+        times,
+        FULL_TARGET_S,
+        case,
+        result,
+        {"image": "2448×2048", "bands": 8, "memory_target_mib": FULL_MEMORY_MIB},
+        peak,
+    )
 
+
+def _notes(
+    main_case: dict[str, Any],
+    weights: str,
+    skipping_results: list[Measurement],
+    real_main: list[Measurement],
+    simulated_main: list[Measurement],
+    real_baselines: dict[str, Any],
+    full: bool,
+) -> list[str | Plot | Table]:
+    """What the stage's report says under its heading (the scaling table apart)."""
     from reconstruction.evaluation import baseline_images
 
     baselines, _ = baseline_images(main_case["raw"], cfa=main_case["cfa"])
@@ -458,7 +274,7 @@ def bench_reconstruct(
         "truth; colour RMSE is relative to the brightest true raw colour.",
         f"Variants reuse the weight the target case chose ({weights}) so that they compare "
         "solver settings, not weight selection.",
-        skipping,
+        skipping_line(skipping_results[-2], skipping_results[-1]),
         "Residual aberration (§4.4.3, edge-strip RMSE R/G/B, ColorChecker rows) of the "
         "demosaicing baselines: "
         + "; ".join(
@@ -485,181 +301,62 @@ def bench_reconstruct(
             "`labkit bench all`, `--full` or LABKIT_BENCH_FULL=1 (about 6 minutes more on 2 "
             "quiet cores)."
         )
-    notes.append(scaling_table(per_size, summary))
-    if out is not None:
-        out = Path(out)
-        plot_time_vs_error(
-            {"204×172 texture, weight fixed": [_point(m) for m in variant_results]},
-            out / TIME_ERROR_PNG,
-            title="labkit reconstruct: time against error (prior, bands, rtol, patch, Φ)",
-            error_label="spectral RMSE / mean truth",
-        )
-        notes.append(Plot("Reconstruction: time against spectral error", TIME_ERROR_PNG))
-        plot_time_vs_error(
-            {
-                "real ColorChecker: patch-centre MRAE (ASD)": [
-                    (m.seconds, m.extra["mrae"], m.extra["variant"]) for m in real_main
-                ],
-                "simulated ColorChecker: MRAE per pixel": [
-                    (m.seconds, m.extra["spectral_mrae"], m.extra["variant"])
-                    for m in simulated_main
-                ],
-            },
-            out / REAL_TIME_ERROR_PNG,
-            title="labkit reconstruct: the main variants on real and simulated data",
-            error_label="MRAE",
-        )
-        notes.append(
-            Plot("Main variants: time against MRAE, real and simulated", REAL_TIME_ERROR_PNG)
-        )
-        pixels = [m.extra["pixels"] for m in per_size]
-        plot_scaling(
-            pixels,
-            {
-                "total (weights included)": (
-                    [m.seconds for m in per_size],
-                    summary.extra["exponent"],
-                ),
-                "patch solves only": (
-                    [m.extra["solve_s"] for m in per_size],
-                    summary.extra["exponent_solve"],
-                ),
-            },
-            out / SCALING_PNG,
-            title="labkit reconstruct: time against image size (texture, 7 bands)",
-        )
-        notes.append(Plot("Reconstruction: time against image size (log–log)", SCALING_PNG))
-    return results, notes
+    return notes
+
+
+def _plots(
+    out: Path,
+    variant_results: list[Measurement],
+    real_main: list[Measurement],
+    simulated_main: list[Measurement],
+    per_size: list[Measurement],
+    summary: Measurement,
+) -> list[str | Plot | Table]:
+    """The stage's three plots, written into `out`."""
+    plot_time_vs_error(
+        {"204×172 texture, weight fixed": [_point(m) for m in variant_results]},
+        out / TIME_ERROR_PNG,
+        title="labkit reconstruct: time against error (prior, bands, rtol, patch, Φ)",
+        error_label="spectral RMSE / mean truth",
+    )
+    plot_time_vs_error(
+        {
+            "real ColorChecker: patch-centre MRAE (ASD)": [
+                (m.seconds, m.extra["mrae"], m.extra["variant"]) for m in real_main
+            ],
+            "simulated ColorChecker: MRAE per pixel": [
+                (m.seconds, m.extra["spectral_mrae"], m.extra["variant"]) for m in simulated_main
+            ],
+        },
+        out / REAL_TIME_ERROR_PNG,
+        title="labkit reconstruct: the main variants on real and simulated data",
+        error_label="MRAE",
+    )
+    plot_scaling(
+        [m.extra["pixels"] for m in per_size],
+        {
+            "total (weights included)": (
+                [m.seconds for m in per_size],
+                summary.extra["exponent"],
+            ),
+            "patch solves only": (
+                [m.extra["solve_s"] for m in per_size],
+                summary.extra["exponent_solve"],
+            ),
+        },
+        out / SCALING_PNG,
+        title="labkit reconstruct: time against image size (texture, 7 bands)",
+    )
+    return [
+        Plot("Reconstruction: time against spectral error", TIME_ERROR_PNG),
+        Plot("Main variants: time against MRAE, real and simulated", REAL_TIME_ERROR_PNG),
+        Plot("Reconstruction: time against image size (log–log)", SCALING_PNG),
+    ]
 
 
 def _point(m: Measurement) -> tuple[float, float, str]:
     name = m.name.split(", ", 1)[-1]
     return m.seconds, m.extra["spectral_rmse_rel"], name
-
-
-def scaling_cases(rig_path: Path, sizes: tuple[int, ...], *, repeats: int) -> list[Measurement]:
-    """The target case's settings on size×size textured renders, each in a fresh process.
-
-    Parameters
-    ----------
-    rig_path : Path
-        Rig YAML (its sensor must be at least as large as the largest size).
-    sizes : tuple of int
-        Image sides, px (even).
-    repeats : int
-        Runs of sizes whose first run takes less than :data:`SHORT_S` (median reported).
-
-    Returns
-    -------
-    list of Measurement
-        One per size; ``extra`` holds ``pixels``, ``weight_s`` and ``solve_s`` (median
-        times of weight selection and of the patch solves, s) and the errors of
-        :func:`errors`.
-    """
-    cases = []
-    for side in sizes:
-        case = simulated_case(rig_path, (side, side), "texture")
-        result, times, phases, peak = _run_isolated(
-            case,
-            repeats=repeats,
-            short_s=SHORT_S,
-            bands=_bands(case, 7),
-            dispersion=case["model"],
-            prior="L2",
-        )
-        measurement = _measurement(
-            f"scaling: {side}×{side} texture, 7 bands, L2, nonneg, Φ, auto:dmc",
-            float(np.median(times)),
-            times,
-            None,
-            case,
-            result,
-            {"image": f"{side}×{side}", "pixels": side * side, "bands": 7},
-            peak,
-        )
-        measurement.extra["weight_s"] = float(np.median(phases["weight_s"]))
-        measurement.extra["solve_s"] = float(np.median(phases["solve_s"]))
-        cases.append(measurement)
-        del case, result
-    return cases
-
-
-def scaling_summary(per_size: list[Measurement]) -> Measurement:
-    """The fitted exponents p of time ∝ pixels^p over the scaling cases, held to ≤ 1.2.
-
-    Parameters
-    ----------
-    per_size : list of Measurement
-        :func:`scaling_cases` output (``extra``: ``pixels``, ``solve_s``), ≥ 2 sizes.
-
-    Returns
-    -------
-    Measurement
-        ``seconds``: the sum of the sizes' median times, s; ``times``: those medians;
-        ``passed``: both the total-time and the solve-only exponent ≤
-        :data:`SCALING_EXPONENT_MAX`; ``extra``: ``exponent``, ``exponent_solve``,
-        ``exponent_max``, ``images``, ``seconds``, ``spectral_rmse_rel``.
-    """
-    pixels = [m.extra["pixels"] for m in per_size]
-    seconds = [m.seconds for m in per_size]
-    exponent = fit_exponent(pixels, seconds)
-    exponent_solve = fit_exponent(pixels, [m.extra["solve_s"] for m in per_size])
-    first, last = per_size[0].extra["image"], per_size[-1].extra["image"]
-    return Measurement(
-        f"scaling: time ∝ pixels^p, {first} … {last}",
-        float(sum(seconds)),
-        seconds,
-        max(m.peak_mib for m in per_size),
-        None,
-        max(exponent, exponent_solve) <= SCALING_EXPONENT_MAX,
-        {
-            "exponent": exponent,
-            "exponent_solve": exponent_solve,
-            "exponent_max": SCALING_EXPONENT_MAX,
-            "images": [m.extra["image"] for m in per_size],
-            "seconds": seconds,
-            "spectral_rmse_rel": [m.extra["spectral_rmse_rel"] for m in per_size],
-        },
-    )
-
-
-def scaling_table(per_size: list[Measurement], summary: Measurement) -> Table:
-    """The scaling cases as a Markdown table, the fitted exponents in its title line."""
-    extra = summary.extra
-    verdict = "pass" if summary.passed else "**FAIL**"
-    title = (
-        f"Time against image size (texture scene, the target case's settings, each size in a "
-        f"fresh process): fitted exponent p = {extra['exponent']:.3f} for the total time, "
-        f"{extra['exponent_solve']:.3f} for the patch solves alone (least squares in "
-        f"log–log, {extra['images'][0]} … {extra['images'][-1]}); "
-        f"{verdict} (≤ {extra['exponent_max']:g})."
-    )
-    rows = [
-        [
-            m.extra["image"],
-            f"{m.extra['pixels']:,}",
-            f"{m.seconds:.2f}",
-            str(len(m.times)),
-            f"{m.extra['weight_s']:.2f}",
-            f"{m.extra['solve_s']:.2f}",
-            f"{m.peak_mib:.0f}",
-            f"{m.extra['spectral_rmse_rel']:.4f}",
-            f"{m.extra['patches']} ({m.extra['flat']} flat)",
-        ]
-        for m in per_size
-    ]
-    columns = [
-        "image",
-        "pixels",
-        "median time (s)",
-        "runs",
-        "weights (s)",
-        "solve (s)",
-        "peak memory (MiB)",
-        "spectral RMSE",
-        "patches",
-    ]
-    return Table(title, columns, rows)
 
 
 def skipping_line(with_skipping: Measurement, without: Measurement) -> str:

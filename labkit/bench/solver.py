@@ -178,7 +178,7 @@ def stability_table(rows: list[StabilityRow], *, title: str) -> Table:
 def recorded_patch_problems(case: dict[str, Any], **options: Any) -> list[tuple[Any, dict]]:
     """(problem, solve options) of every patch solve :func:`reconstruct` makes for `case`."""
     import reconstruction.patches as patches
-    from labkit.bench.reconstruct import _run
+    from labkit.bench.reconstruct_cases import run_case
 
     recorded: list[tuple[Any, dict]] = []
     solve = patches.solve
@@ -190,7 +190,7 @@ def recorded_patch_problems(case: dict[str, Any], **options: Any) -> list[tuple[
 
     patches.solve = recording
     try:
-        _run(case, scheduler="sync", **options)
+        run_case(case, scheduler="sync", **options)
     finally:
         patches.solve = solve
     return recorded
@@ -222,7 +222,13 @@ def bench_solver(
     repeats : int
         Unused: each run is one solve (its time is reported).
     """
-    from labkit.bench.reconstruct import SHAPE, VARIANT_SHAPE, _bands, _run, simulated_case
+    from labkit.bench.reconstruct_cases import (
+        SHAPE,
+        VARIANT_SHAPE,
+        case_bands,
+        run_case,
+        simulated_case,
+    )
 
     colorchecker = simulated_case(rig_path, SHAPE, "colorchecker")
     texture = simulated_case(rig_path, VARIANT_SHAPE, "texture")
@@ -244,15 +250,18 @@ def bench_solver(
             GAP_TARGET,
         ),
     ]
-    main, _ = _run(
-        colorchecker, bands=_bands(colorchecker, 7), dispersion=colorchecker["model"], prior="L2"
+    main, _ = run_case(
+        colorchecker,
+        bands=case_bands(colorchecker, 7),
+        dispersion=colorchecker["model"],
+        prior="L2",
     )
     weights = f"fixed:{main.log['weights']['values'][0]:.6g}"
     cases: list[Measurement] = []
     rows: list[StabilityRow] = []
     for label, case, options, gap_target in scenes:
         options = {
-            "bands": _bands(case, 7),
+            "bands": case_bands(case, 7),
             "dispersion": case["model"],
             "weights": weights,
             **options,

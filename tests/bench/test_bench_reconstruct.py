@@ -6,7 +6,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from labkit.bench.reconstruct import edge_errors, errors, lens_model, simulated_case
+from labkit.bench.reconstruct_cases import edge_errors, errors, lens_model, simulated_case
 from labkit.rig import default_rig_path
 
 

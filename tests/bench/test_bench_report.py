@@ -18,7 +18,8 @@ from labkit.bench.harness import (
     repeat_timed,
     write_report,
 )
-from labkit.bench.reconstruct import scaling_summary, scaling_table, skipping_line
+from labkit.bench.reconstruct import skipping_line
+from labkit.bench.reconstruct_scaling import scaling_summary, scaling_table
 
 
 @pytest.mark.parametrize("exponent", [1.0, 1.5])

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from labkit.bench.reconstruct import _bands, simulated_case
+from labkit.bench.reconstruct_cases import case_bands, simulated_case
 from labkit.bench.solver import (
     PERTURBATION,
     perturbed,
@@ -21,7 +21,7 @@ def test_patch_problems_are_recorded_as_reconstruct_poses_them() -> None:
     no weight-selection solves), each with its options; re-solving a recorded problem with
     them gives the iterations reconstruct() saw."""
     case = simulated_case(default_rig_path(), (96, 112), "texture")
-    options = {"bands": _bands(case, 5), "dispersion": case["model"], "weights": "fixed:0.005"}
+    options = {"bands": case_bands(case, 5), "dispersion": case["model"], "weights": "fixed:0.005"}
     recorded = recorded_patch_problems(case, prior="L2", patch_px=32, pad_px=8, **options)
     assert len(recorded) == 3 * 4
     problem, kwargs = recorded[0]
@@ -35,7 +35,7 @@ def test_patch_problems_are_recorded_as_reconstruct_poses_them() -> None:
 
 def test_runs_are_compared_against_a_tight_reference() -> None:
     case = simulated_case(default_rig_path(), (64, 64), "texture")
-    options = {"bands": _bands(case, 5), "dispersion": case["model"], "weights": "fixed:0.005"}
+    options = {"bands": case_bands(case, 5), "dispersion": case["model"], "weights": "fixed:0.005"}
     recorded = recorded_patch_problems(case, prior="L2", patch_px=32, pad_px=8, **options)
     problem, _ = recorded[0]
     changed = perturbed(problem)

@@ -53,7 +53,7 @@ def rig_lens_model(shape: tuple[int, int] = (2048, 2448)):
     """
     from _helpers import planted_dispersion_model
 
-    from labkit.bench.reconstruct import LensField
+    from labkit.bench.reconstruct_cases import LensField
     from labkit.rig import load_rig
     from labkit.sim.lens import Lens
 

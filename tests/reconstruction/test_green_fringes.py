@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from labkit.bench.reconstruct import _bands, simulated_case
+from labkit.bench.reconstruct_cases import case_bands, simulated_case
 from labkit.rig import default_rig_path, load_rig
 from labkit.sim import SimulatedRig
 from labkit.sim.scenes import colorchecker_patch_boxes
@@ -40,7 +40,7 @@ def test_vectorial_tv_with_cubic_phi_beats_every_baseline_in_green() -> None:
         raw,
         cfa=cfa,
         response=case["response"],
-        bands=_bands(case, 7),
+        bands=case_bands(case, 7),
         dispersion=case["model"],
         interpolation="cubic",
         prior="VTV",
@@ -70,7 +70,7 @@ def test_mean_colour_reference_reduces_fringes(smoothness: float) -> None:
     settings = {
         "cfa": case["cfa"],
         "response": case["response"],
-        "bands": _bands(case, 7),
+        "bands": case_bands(case, 7),
         "dispersion": case["model"],
         "spectral_smoothness": smoothness,
     }
