@@ -25,7 +25,8 @@ Additions to the thesis, both from Boyd et al. §3.4: over-relaxation (α = 1.6)
 residual balancing (ρ_t is doubled or halved when one residual exceeds the other ten-fold;
 each change costs a re-inversion of the FFT blocks, so at most :data:`MAX_PENALTY_UPDATES`
 are made). A third addition: type-II Anderson acceleration of the (z, u) iteration (memory
-:data:`ANDERSON_MEMORY`, safeguarded), which cuts the iterations to a tight tolerance
+:data:`ANDERSON_MEMORY`, safeguarded: :mod:`reconstruction.solvers.anderson`), which cuts the
+iterations to a tight tolerance
 severalfold on textured patches at the small weights the DMC criterion picks.
 Without splits (L2 priors, no constraint) the problem is one quadratic solve.
 """
@@ -44,6 +45,7 @@ from reconstruction.operators import LinearOperator
 from reconstruction.prior_terms import GROUP_AXES
 from reconstruction.problem import Problem
 from reconstruction.solvers.active_set import PolishReport, polish, solve_periodic
+from reconstruction.solvers.anderson import AndersonAcceleration
 from reconstruction.solvers.cg import conjugate_gradient
 from reconstruction.solvers.fourier import FourierSolver
 
@@ -74,7 +76,6 @@ ANDERSON_MEMORY = 5
 SINGLE_PRECISION_IDENTITY = 1e-4
 """The CG preconditioner runs in single precision when the quadratic step's identity
 coefficient is at least this times the data term's mean curvature (:func:`data_curvature`)."""
-ANDERSON_SAFEGUARD = 10.0
 CG_FORCING = 0.1
 """Each CG solve's residual is at most this times the larger of ADMM's last residuals
 (Σ_t ρ_t‖r_t‖ + ‖s_t‖, gradient units) and the smallest dual tolerance: an I-update less
@@ -489,7 +490,7 @@ def solve(
     recent: list[float] = []
     cg_atol = np.inf
     updates = 0
-    anderson = _Anderson(ANDERSON_MEMORY)
+    anderson = AndersonAcceleration(ANDERSON_MEMORY)
     projected = splits[-1].z if problem.nonneg else x  # x ≥ 0: the last split's z
     for k in range(1, max_iter + 1):
         rhs = data_rhs.copy()
@@ -566,79 +567,6 @@ def solve(
         x, report.polish = polish(problem, x, exact.apply, exact.solver)
         report.converged = report.polish.status == "optimal" or report.converged
     return _finish(problem, x, report, step)
-
-
-class _Anderson:
-    """Type-II Anderson acceleration of a fixed-point map y ↦ g(y) (Walker & Ni 2011).
-
-    With memory m the next iterate is ``g(y) − ΔG γ``, γ the least-squares fit of the
-    newest residual f = g(y) − y by the last m residual differences ΔF, and ΔG the
-    matching differences of g (ΔY + ΔF). An extrapolation whose residual comes out more
-    than :data:`ANDERSON_SAFEGUARD`-fold above the best so far is rejected: the iteration
-    goes on from the plain step of the point it was extrapolated from, and the memory
-    restarts. (Keeping it instead, where the residual differences had become nearly
-    collinear near convergence, threw the objective up by orders of magnitude and cost
-    ADMM many iterations to recover; figures in the README, how it works.)
-    """
-
-    def __init__(self, memory: int) -> None:
-        self.memory = memory
-        self._d_mapped = np.empty((memory, 0))  # (memory, size) ring buffers of ΔG, ΔF
-        self._d_residuals = np.empty((memory, 0))
-        self._gram = np.zeros((memory, memory))  # ΔFᵀΔF, updated one column at a time
-        self.reset()
-
-    def reset(self) -> None:
-        self.count = 0  # stored differences
-        self.slot = 0  # where the next one goes
-        self.last: tuple[np.ndarray, np.ndarray] | None = None  # the last (g(y), f)
-        self.best = np.inf
-        self.accepted = 0
-        self.fallback: np.ndarray | None = None  # the plain step an extrapolation replaced
-
-    def _store(
-        self, mapped: np.ndarray, residual: np.ndarray, last: tuple[np.ndarray, np.ndarray]
-    ) -> None:
-        if self._d_mapped.shape[1] != mapped.size:
-            self._d_mapped = np.empty((self.memory, mapped.size))
-            self._d_residuals = np.empty((self.memory, mapped.size))
-        slot = self.slot
-        np.subtract(mapped, last[0], out=self._d_mapped[slot])
-        d_residual = np.subtract(residual, last[1], out=self._d_residuals[slot])
-        self.count = min(self.count + 1, self.memory)
-        products = self._d_residuals[: self.count] @ d_residual
-        self._gram[slot, : self.count] = products
-        self._gram[: self.count, slot] = products
-        self.slot = (slot + 1) % self.memory
-
-    def step(self, state: np.ndarray, mapped: np.ndarray) -> np.ndarray:
-        self.accepted = 0
-        if self.memory == 0:
-            return mapped
-        residual = mapped - state
-        norm = float(np.linalg.norm(residual))
-        if norm > ANDERSON_SAFEGUARD * self.best:
-            fallback = self.fallback
-            self.reset()
-            if fallback is not None:  # `state` was a bad extrapolation: undo it
-                return fallback
-        self.best = min(self.best, norm)
-        if self.last is not None:
-            self._store(mapped, residual, self.last)
-        self.last = (mapped, residual)
-        if self.count == 0:
-            return mapped
-        m = self.count
-        gram = self._gram[:m, :m]
-        scale = np.sqrt(np.diag(gram))
-        if not np.all(scale > 0):
-            self.reset()
-            return mapped
-        normalised = gram / np.outer(scale, scale) + 1e-10 * np.eye(m)
-        gamma = np.linalg.solve(normalised, (self._d_residuals[:m] @ residual) / scale) / scale
-        self.accepted = 1
-        self.fallback = mapped
-        return mapped - gamma @ self._d_mapped[:m]
 
 
 def _unpack(vector: np.ndarray, splits: list[_Split]) -> None:

@@ -546,12 +546,12 @@ def test_anderson_rejects_an_extrapolation_that_blows_up() -> None:
     """On y ↦ y/2 + 1 (fixed point 2) Anderson's second step extrapolates to the fixed
     point; when the map's residual there comes out 1e6 (far above 10× the best so far),
     the point is rejected and the iteration resumes from the plain step it replaced."""
-    from reconstruction.solvers.admm import _Anderson
+    from reconstruction.solvers.anderson import AndersonAcceleration
 
     def g(y):
         return 0.5 * y + 1.0
 
-    anderson = _Anderson(3)
+    anderson = AndersonAcceleration(3)
     first = anderson.step(np.zeros(4), g(np.zeros(4)))  # no memory yet: the plain step
     np.testing.assert_array_equal(first, np.ones(4))
     second = anderson.step(first, g(first))
