@@ -60,7 +60,8 @@ from collections.abc import Callable, Iterator, Sequence
 from typing import ClassVar
 
 from labkit.errors import ConfigError
-from labkit.sim._pty import ProtocolHandler, Reply, SliderSimulator, Wait
+from labkit.sim._pty import SliderSimulator
+from labkit.sim.serial_protocol import ProtocolHandler, Reply, Wait
 
 __all__ = [
     "ELLIPTEC_MODELS",

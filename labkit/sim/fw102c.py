@@ -28,7 +28,8 @@ from collections.abc import Callable, Iterator
 from typing import ClassVar, Literal
 
 from labkit.errors import ConfigError
-from labkit.sim._pty import ProtocolHandler, Reply, SliderSimulator, Wait
+from labkit.sim._pty import SliderSimulator
+from labkit.sim.serial_protocol import ProtocolHandler, Reply, Wait
 
 __all__ = ["FW102CHandler", "FW102CSimulator"]
 

@@ -10,8 +10,8 @@ import pytest
 import serial
 
 from labkit.errors import ConfigError, DeviceError
-from labkit.sim._pty import LineFramer, Wait
 from labkit.sim.fw102c import FW102CHandler, FW102CSimulator
+from labkit.sim.serial_protocol import LineFramer, Wait
 
 PROMPT = b"> "
 IDN = b"THORLABS FW102C/FW212C Filter Wheel version 1.07"
