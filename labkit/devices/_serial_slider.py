@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import abc
 import contextlib
 from typing import Self
 
@@ -26,7 +27,7 @@ def attempts_text(count: int) -> str:
     return "1 attempt" if count == 1 else f"{count} attempts"
 
 
-class SerialSlider:
+class SerialSlider(abc.ABC):
     """Base of the pyserial slider drivers.
 
     Subclasses set ``port``, ``timeout_s`` and ``_serial`` (an open :class:`serial.Serial`)
@@ -38,14 +39,14 @@ class SerialSlider:
     _serial: serial.Serial | None
 
     @property
+    @abc.abstractmethod
     def slot_count(self) -> int:
         """Number of slots (the driver reads it from the device)."""
-        raise NotImplementedError
 
     @property
+    @abc.abstractmethod
     def _link_hint(self) -> str:
         """What to check when the device does not answer, for error messages."""
-        raise NotImplementedError
 
     @property
     def _quiet_s(self) -> float:
