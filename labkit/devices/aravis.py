@@ -533,10 +533,6 @@ class AravisCamera(GenICamFeatures):
     def _stop_for_change(self) -> None:
         self._stop_acquisition()
 
-    def _present(self, candidates: tuple[str, ...]) -> str | None:
-        """The first of `candidates` the device has (no reconnect: for frame records)."""
-        return next((name for name in candidates if self._kind(name) is not None), None)
-
     def set(self, name: str, value: Any) -> None:
         """Write a feature (GenICam units); numbers are checked against the feature's bounds.
 

@@ -144,6 +144,10 @@ class GenICamFeatures(abc.ABC):
     def has_feature(self, name: str) -> bool:
         """Whether the device implements feature `name` and it is available now."""
         self._usable()
+        return self._available(name)
+
+    def _available(self, name: str) -> bool:
+        """:meth:`has_feature` without the open check, for callers that have made it."""
         return self._kind(name) is not None and self._access(name) not in ("NI", "NA")
 
     def _feature_kind(self, name: str) -> str:
@@ -256,7 +260,13 @@ class GenICamFeatures(abc.ABC):
 
     def _first_feature(self, candidates: Iterable[str]) -> str | None:
         """The first of `candidates` the device has, or None."""
-        return next((name for name in candidates if self.has_feature(name)), None)
+        self._usable()
+        return self._present(candidates)
+
+    def _present(self, candidates: Iterable[str]) -> str | None:
+        """:meth:`_first_feature` without the open check, which may reconnect: for code
+        that runs while a frame is being handled."""
+        return next((name for name in candidates if self._available(name)), None)
 
     def _feature_bounds(self, name: str, scale: float) -> Bounds:
         """Range and increment of numeric feature `name`, times `scale`."""
