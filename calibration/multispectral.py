@@ -28,7 +28,7 @@ from calibration.sensitivity import ChannelSensitivity
 from labkit.blas_threads import fixed_blas_threads
 from labkit.cfa import channel_index, check_layout, mosaic
 from labkit.errors import DataError
-from labkit.io.exr import RawImage, SpectralImage, write_raw_exr, write_spectral_exr
+from labkit.io import RawImage, SpectralImage, write_raw_exr, write_spectral_exr
 from labkit.io.preview import to_display, write_png
 
 #: Units of the synthetic images.

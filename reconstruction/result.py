@@ -1,7 +1,8 @@
 """The result of a reconstruction, and the files it writes (``labkit reconstruct``, the demos).
 
 :meth:`Reconstruction.save` writes ``spectral.exr`` (spectral latent space: the spectrum at
-the band centres, raw units per nm, band centres and basis in the header),
+the band centres, raw units per nm, in the Fichet et al. 2021 layout for spectral EXRs, with
+band centres and basis in labkit's header attribute),
 ``raw_colour.exr`` (the aberration-free image in raw camera colour, raw units),
 ``preview.png`` (sRGB; :func:`labkit.io.spectral_preview` for spectra, the raw colour
 otherwise) and ``log.json`` (the reconstruction's log with the caller's provenance). Every
@@ -18,6 +19,7 @@ from typing import Any
 import numpy as np
 
 import labkit
+from labkit.errors import DataError
 from labkit.io import (
     SpectralImage,
     spectral_preview,
@@ -67,6 +69,40 @@ class Reconstruction:
         (:func:`save_reconstruction`)."""
         return save_reconstruction(self, out, provenance=provenance, log=log)
 
+    def spectral_image(self, *, provenance: dict[str, Any] | None = None) -> SpectralImage:
+        """The spectral latent image as :class:`labkit.io.SpectralImage`, with the
+        provenance that ``spectral.exr`` records (units, basis, options).
+
+        Raises
+        ------
+        DataError
+            The result is in the colour latent space (no wavelengths; use `raw_colour`).
+        """
+        if self.wavelengths_nm is None:
+            raise DataError(
+                "this reconstruction is in the colour latent space: it has no wavelengths; "
+                "use its raw_colour (rows, cols, 3), or reconstruct with --bands"
+            )
+        centres = np.asarray(self.wavelengths_nm, dtype=np.float64)
+        header = {**recorded_options(self), **(provenance or {})}
+        header.setdefault("software", f"labkit {labkit.__version__}")
+        basis = {
+            "kernel": self.latent.kernel,
+            "spacing_nm": float(centres[1] - centres[0]) if centres.size > 1 else None,
+            "values": "spectrum at the band centres",
+            "reference_scale": [float(v) for v in self.latent.scale],
+        }
+        return SpectralImage(self.spectral, centres, {**header, "basis": basis, "units": UNITS})
+
+    def to_xarray(self) -> Any:
+        """The spectral image as an ``xarray.DataArray`` with dimensions ``y``, ``x`` (pixels)
+        and ``wavelength`` (nm), for notebooks (:meth:`labkit.io.SpectralImage.to_xarray`;
+        needs ``labkit[xarray]``)."""
+        return self.spectral_image().to_xarray()
+
+
+UNITS = "raw units per nm"
+"""Units of the spectral latent image: the raw image's units per nm of wavelength."""
 
 OUTPUT_FILES = ("spectral.exr", "raw_colour.exr", "preview.png", "log.json")
 """Names of the files :func:`save_reconstruction` writes (no spectral.exr for colour)."""
@@ -104,21 +140,10 @@ def save_reconstruction(
     header.setdefault("software", f"labkit {labkit.__version__}")
     paths: dict[str, Path] = {}
     if result.wavelengths_nm is not None:
-        centres = np.asarray(result.wavelengths_nm, dtype=np.float64)
-        basis = {
-            "kernel": result.latent.kernel,
-            "spacing_nm": float(centres[1] - centres[0]) if centres.size > 1 else None,
-            "values": "spectrum at the band centres",
-            "reference_scale": [float(v) for v in result.latent.scale],
-        }
         paths["spectral"] = out / "spectral.exr"
-        write_spectral_exr(
-            paths["spectral"],
-            SpectralImage(
-                result.spectral, centres, {**header, "basis": basis, "units": "raw units per nm"}
-            ),
-        )
-        preview = spectral_preview(result.spectral, centres)
+        image = result.spectral_image(provenance=provenance)
+        write_spectral_exr(paths["spectral"], image)
+        preview = spectral_preview(image.cube, image.wavelengths_nm)
     else:
         preview = to_display(np.maximum(result.raw_colour, 0), max_side=None)
     paths["raw_colour"] = out / "raw_colour.exr"

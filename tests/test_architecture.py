@@ -27,6 +27,9 @@ DEFERRED_IMPORTS = {
     ("labkit.io.preview", "labkit.spectra.conversion"): (
         "the spectral tables, for spectral previews only: most users of labkit.io write raw images"
     ),
+    ("labkit.io.spectral_exr", "labkit.spectra.conversion"): (
+        "the spectral tables, for the RGB channels of spectral EXRs only (as for previews)"
+    ),
     ("labkit.protocol.hardware", "labkit.devices.aravis"): (
         "Aravis through PyGObject: a system library that only an Aravis rig needs"
     ),

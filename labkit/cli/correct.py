@@ -55,6 +55,7 @@ def _warp(args: argparse.Namespace) -> int:
     from calibration.warp import correct_channels, correct_spectral
     from labkit.errors import ConfigError, DataError
     from labkit.io import (
+        SpectralImage,
         demosaic_bilinear,
         read_mosaic,
         to_display,
@@ -62,7 +63,6 @@ def _warp(args: argparse.Namespace) -> int:
         write_rgb_exr,
         write_spectral_exr,
     )
-    from labkit.io.exr import SpectralImage
 
     model = load_dispersion_model(args.model)
     provenance = {"input": str(args.image), "dispersion_model": str(args.model)}

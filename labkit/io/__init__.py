@@ -1,17 +1,15 @@
-"""Files: atomic writes, raw TIFF frames, OpenEXR raw/spectral images, raw mosaics from other
-software and cameras, PNG previews, masks."""
+"""Files: atomic writes, raw TIFF frames, OpenEXR raw images, spectral images (OpenEXR in
+the Fichet et al. 2021 layout, ENVI, xarray), raw mosaics from other software and cameras,
+PNG previews, masks."""
 
 from labkit.io.atomic import atomic_path, atomic_write, fsync_directory, write_text_atomic
+from labkit.io.envi import read_envi, write_envi
 from labkit.io.exr import (
     RawImage,
-    SpectralImage,
-    band_name,
     read_raw_exr,
     read_rgb_exr,
-    read_spectral_exr,
     write_raw_exr,
     write_rgb_exr,
-    write_spectral_exr,
 )
 from labkit.io.mosaic import MOSAIC_SUFFIXES, read_mosaic
 from labkit.io.plain import to_plain
@@ -24,6 +22,8 @@ from labkit.io.preview import (
     to_display,
     write_png,
 )
+from labkit.io.spectral_exr import read_spectral_exr, write_spectral_exr
+from labkit.io.spectral_image import SpectralImage
 from labkit.io.tiff import encode_raw_tiff, read_raw_tiff, write_raw_tiff
 
 __all__ = [
@@ -32,12 +32,12 @@ __all__ = [
     "SpectralImage",
     "atomic_path",
     "atomic_write",
-    "band_name",
     "demosaic_bilinear",
     "display_on_one_scale",
     "encode_raw_tiff",
     "fsync_directory",
     "raw_preview",
+    "read_envi",
     "read_mosaic",
     "read_plane",
     "read_raw_exr",
@@ -47,6 +47,7 @@ __all__ = [
     "spectral_preview",
     "to_display",
     "to_plain",
+    "write_envi",
     "write_png",
     "write_raw_exr",
     "write_raw_tiff",

@@ -11,16 +11,18 @@ from typing import IO, Any
 
 
 @contextlib.contextmanager
-def atomic_path(path: str | Path) -> Iterator[Path]:
+def atomic_path(path: str | Path, *, suffix: str = ".part") -> Iterator[Path]:
     """Yield a temporary path that replaces `path` only when the block succeeds.
 
-    Write the file at the yielded path (any library, any number of opens). On success it
+    Write the file at the yielded path (any library, any number of opens). Its name is
+    hidden (a leading dot) and ends in `suffix`; libraries that pick a format from the
+    name need one such as ``".part.exr"``. On success it
     is fsynced and renamed over `path`, and the folder entry is fsynced; a crash or
     exception leaves the old file or none — never a partial file under the final name.
     """
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
-    fd, temp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part", dir=target.parent)
+    fd, temp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=suffix, dir=target.parent)
     os.close(fd)
     temp = Path(temp_name)
     try:

@@ -1,4 +1,4 @@
-"""OpenEXR files: HDR raw mosaics and spectral images (the formats of DESIGN.md).
+"""OpenEXR files: HDR raw mosaics and RGB images (the formats of DESIGN.md).
 
 A **raw image** holds one float32 channel ``raw`` (the Bayer mosaic) and optionally
 ``variance``; its header carries ``cfa``, ``exposure_s``, ``illumination``,
@@ -6,10 +6,9 @@ A **raw image** holds one float32 channel ``raw`` (the Bayer mosaic) and optiona
 the exact float64 values of the numeric attributes, since EXR float attributes are
 float32).
 
-A **spectral image** holds one float32 channel per band named by its centre wavelength
-(``S400.0``, …), with header ``wavelengths_nm`` and ``labkit`` (basis, provenance).
+Spectral images are :mod:`labkit.io.spectral_exr`.
 
-Both are written atomically: a crash never leaves a partial file under the final name.
+All are written atomically: a crash never leaves a partial file under the final name.
 """
 
 from __future__ import annotations
@@ -63,20 +62,6 @@ class RawImage:
     labkit: dict[str, Any] = field(default_factory=dict)
 
 
-@dataclass
-class SpectralImage:
-    """A spectral image (rows, cols, bands) with band centres in nm."""
-
-    cube: np.ndarray
-    wavelengths_nm: np.ndarray
-    labkit: dict[str, Any] = field(default_factory=dict)
-
-
-def band_name(wavelength_nm: float) -> str:
-    """Channel name of a spectral band, e.g. ``S550.0``."""
-    return f"S{float(wavelength_nm):.1f}"
-
-
 def write_raw_exr(path: str | Path, image: RawImage) -> None:
     """Write a :class:`RawImage` as an OpenEXR file, atomically.
 
@@ -85,10 +70,10 @@ def write_raw_exr(path: str | Path, image: RawImage) -> None:
     """
     import OpenEXR
 
-    raw = _checked_plane(path, "raw", image.raw)
+    raw = checked_plane(path, "raw", image.raw)
     channels = {"raw": raw}
     if image.variance is not None:
-        variance = _checked_plane(path, "variance", image.variance)
+        variance = checked_plane(path, "variance", image.variance)
         if variance.shape != raw.shape:
             raise DataError(f"{path}: variance {variance.shape} does not match raw {raw.shape}")
         channels["variance"] = variance
@@ -114,7 +99,7 @@ def write_raw_exr(path: str | Path, image: RawImage) -> None:
     }
     if image.wavelength_nm is not None:
         header["wavelength_nm"] = float(image.wavelength_nm)
-    _write(path, header, channels)
+    write_exr(path, header, channels)
 
 
 def read_raw_exr(path: str | Path) -> RawImage:
@@ -123,7 +108,7 @@ def read_raw_exr(path: str | Path) -> RawImage:
     EXRs from other software (no ``cfa`` or ``exposure_s`` attribute) and other kinds of
     raw file are read by :func:`labkit.io.read_mosaic`.
     """
-    header, channels = _read(path)
+    header, channels = read_exr(path)
     if "raw" not in channels:
         raise DataError(
             f"{path}: no 'raw' channel (channels: {sorted(channels)}); "
@@ -131,7 +116,7 @@ def read_raw_exr(path: str | Path) -> RawImage:
         )
     if "cfa" not in header:
         raise DataError(f"{path}: header has no 'cfa' attribute; not a labkit raw EXR")
-    provenance = _provenance(path, header)
+    provenance = read_provenance(path, header)
     exposure = provenance.get("exposure_s", header.get("exposure_s"))
     if exposure is None:
         raise DataError(f"{path}: header has no 'exposure_s' attribute")
@@ -147,38 +132,6 @@ def read_raw_exr(path: str | Path) -> RawImage:
     )
 
 
-def write_spectral_exr(path: str | Path, image: SpectralImage) -> None:
-    """Write a :class:`SpectralImage` (one float32 channel per band), atomically."""
-    cube = np.asarray(image.cube)
-    wavelengths = np.asarray(image.wavelengths_nm, dtype=np.float64).ravel()
-    if cube.ndim != 3 or cube.shape[2] != wavelengths.size:
-        raise DataError(
-            f"{path}: a spectral image must be (rows, cols, bands) with one wavelength per "
-            f"band; got {cube.shape} and {wavelengths.size} wavelengths"
-        )
-    names = [band_name(w) for w in wavelengths]
-    if len(set(names)) != len(names):
-        raise DataError(f"{path}: band centres must differ by ≥ 0.1 nm, got {wavelengths}")
-    channels = {
-        name: _checked_plane(path, name, cube[:, :, index]) for index, name in enumerate(names)
-    }
-    import OpenEXR
-
-    provenance = {
-        "format": FORMAT_VERSION,
-        "kind": "spectral",
-        "wavelengths_nm": wavelengths,
-        **image.labkit,
-    }
-    header = {
-        "compression": OpenEXR.ZIP_COMPRESSION,
-        "type": OpenEXR.scanlineimage,
-        "wavelengths_nm": wavelengths.astype(np.float32),
-        "labkit": json.dumps(provenance, default=json_default),
-    }
-    _write(path, header, channels)
-
-
 def write_rgb_exr(path: str | Path, rgb: np.ndarray, labkit: dict[str, Any] | None = None) -> None:
     """Write a linear (rows, cols, 3) image as an RGB OpenEXR (channels R, G, B), atomically."""
     rgb = np.asarray(rgb)
@@ -186,40 +139,25 @@ def write_rgb_exr(path: str | Path, rgb: np.ndarray, labkit: dict[str, Any] | No
         raise DataError(f"{path}: an RGB image must be (rows, cols, 3), got {rgb.shape}")
     import OpenEXR
 
-    channels = {name: _checked_plane(path, name, rgb[:, :, i]) for i, name in enumerate("RGB")}
+    channels = {name: checked_plane(path, name, rgb[:, :, i]) for i, name in enumerate("RGB")}
     provenance = {**(labkit or {}), "format": FORMAT_VERSION, "kind": "rgb"}
     header = {
         "compression": OpenEXR.ZIP_COMPRESSION,
         "type": OpenEXR.scanlineimage,
         "labkit": json.dumps(provenance, default=json_default),
     }
-    _write(path, header, channels)
+    write_exr(path, header, channels)
 
 
 def read_rgb_exr(path: str | Path) -> np.ndarray:
     """Read an RGB EXR (channels R, G, B) as (rows, cols, 3) float32."""
-    _, channels = _read(path)
+    _, channels = read_exr(path)
     if not {"R", "G", "B"} <= set(channels):
         raise DataError(f"{path}: expected channels R, G, B (an RGB EXR), got {sorted(channels)}")
     return np.stack([channels[c] for c in "RGB"], axis=-1)
 
 
-def read_spectral_exr(path: str | Path) -> SpectralImage:
-    """Read a spectral EXR written by :func:`write_spectral_exr`."""
-    header, channels = _read(path)
-    provenance = _provenance(path, header)
-    wavelengths = provenance.get("wavelengths_nm", header.get("wavelengths_nm"))
-    if wavelengths is None:
-        raise DataError(f"{path}: header has no 'wavelengths_nm'; not a labkit spectral EXR")
-    wavelengths = np.asarray(wavelengths, dtype=np.float64).ravel()
-    try:
-        planes = [channels[band_name(w)] for w in wavelengths]
-    except KeyError as missing:
-        raise DataError(f"{path}: band channel {missing} is missing") from None
-    return SpectralImage(np.stack(planes, axis=-1), wavelengths, provenance)
-
-
-def _checked_plane(path: str | Path, name: str, plane: np.ndarray) -> np.ndarray:
+def checked_plane(path: str | Path, name: str, plane: np.ndarray) -> np.ndarray:
     plane = np.asarray(plane)
     if plane.ndim != 2:
         raise DataError(f"{path}: channel {name!r} must be 2-D, got shape {plane.shape}")
@@ -232,14 +170,14 @@ def _checked_plane(path: str | Path, name: str, plane: np.ndarray) -> np.ndarray
     return plane
 
 
-def _write(path: str | Path, header: dict[str, Any], channels: dict[str, np.ndarray]) -> None:
+def write_exr(path: str | Path, header: dict[str, Any], channels: dict[str, np.ndarray]) -> None:
     import OpenEXR
 
     with atomic_path(path) as temp:
         OpenEXR.File(header, channels).write(str(temp))
 
 
-def _read(path: str | Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+def read_exr(path: str | Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     import OpenEXR
 
     path = Path(path)
@@ -257,7 +195,7 @@ def _read(path: str | Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     return header, channels
 
 
-def _provenance(path: str | Path, header: dict[str, Any]) -> dict[str, Any]:
+def read_provenance(path: str | Path, header: dict[str, Any]) -> dict[str, Any]:
     text = header.get("labkit")
     if text is None:
         return {}

@@ -35,7 +35,7 @@ import numpy as np
 
 from labkit.cfa import CFA_LAYOUTS, check_layout, layout_from_pixel_format
 from labkit.errors import ConfigError, DataError
-from labkit.io.exr import RawImage, _provenance, _read
+from labkit.io.exr import RawImage, read_exr, read_provenance
 from labkit.io.tiff import description_metadata
 
 #: Suffixes of OpenEXR files.
@@ -127,8 +127,8 @@ def read_mosaic(path: str | Path, *, cfa: str | None = None, cfa_from: str = "--
 
 # -- OpenEXR ----------------------------------------------------------------------------
 def _read_exr(path: Path, cfa: str | None, cfa_from: str) -> RawImage:
-    header, channels = _read(path)
-    provenance = _provenance(path, header)
+    header, channels = read_exr(path)
+    provenance = read_provenance(path, header)
     names = sorted(channels)
     if "wavelengths_nm" in header or provenance.get("kind") == "spectral":
         raise DataError(

@@ -55,6 +55,14 @@ def spectral_to_xyz(
     return np.asarray(image, dtype=np.float64) @ (matrix / luminance)
 
 
+def xyz_to_linear_srgb(xyz: np.ndarray) -> np.ndarray:
+    """Linear CIE XYZ → linear sRGB (D65 white, no encoding and no clipping: values outside
+    the sRGB gamut stay negative or above 1)."""
+    import colour
+
+    return colour.XYZ_to_sRGB(np.asarray(xyz, dtype=np.float64), apply_cctf_encoding=False)
+
+
 def xyz_to_srgb(xyz: np.ndarray) -> np.ndarray:
     """Linear CIE XYZ (white Y = 1, D65-adapted) → gamma-encoded sRGB in [0, 1]."""
     import colour

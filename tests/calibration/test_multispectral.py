@@ -17,7 +17,7 @@ from calibration import (
 )
 from labkit.cfa import CFA_LAYOUTS, channel_masks
 from labkit.errors import DataError
-from labkit.io.exr import RawImage, read_raw_exr, read_spectral_exr, write_raw_exr
+from labkit.io import RawImage, read_raw_exr, read_spectral_exr, write_raw_exr
 from labkit.io.preview import demosaic_bilinear
 
 #: Planted bands: wavelength (nm), constant HDR value, reference exposure (s), R/G, B/G.

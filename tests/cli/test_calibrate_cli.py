@@ -16,7 +16,7 @@ from calibration import (
 )
 from labkit.cfa import mosaic
 from labkit.cli import main
-from labkit.io.exr import RawImage, read_raw_exr, read_spectral_exr, write_raw_exr
+from labkit.io import RawImage, read_raw_exr, read_spectral_exr, write_raw_exr
 from labkit.rig import load_rig
 
 SHAPE = (48, 64)

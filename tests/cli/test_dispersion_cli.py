@@ -13,8 +13,7 @@ from calibration.dispersion_model import load_dispersion_model
 from calibration.multispectral import green_bilinear
 from labkit.cli import main
 from labkit.hdr.truth import simulated_hdr_images
-from labkit.io import read_spectral_exr, write_raw_exr, write_spectral_exr
-from labkit.io.exr import SpectralImage
+from labkit.io import SpectralImage, read_spectral_exr, write_raw_exr, write_spectral_exr
 from labkit.rig import load_rig
 from labkit.sim import SimulatedRig
 

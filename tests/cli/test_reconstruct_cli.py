@@ -14,8 +14,7 @@ from PIL import Image
 
 from labkit.cfa import mosaic
 from labkit.cli import build_parser, main
-from labkit.io import RawImage, read_spectral_exr, write_raw_exr, write_spectral_exr
-from labkit.io.exr import SpectralImage
+from labkit.io import RawImage, SpectralImage, read_spectral_exr, write_raw_exr, write_spectral_exr
 from labkit.spectra import camera_response
 from labkit.spectra.datasets import write_response_csv
 from reconstruction import PRIORS

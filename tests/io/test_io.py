@@ -85,13 +85,13 @@ def test_rgb_exr_is_labelled_rgb_whatever_provenance_it_carries(tmp_path: Path) 
     """`labkit correct warp` passes a raw image's provenance (kind: raw) along; the RGB
     file must still say kind: rgb, and its pixels come back exactly."""
     from labkit.io import read_rgb_exr, write_rgb_exr
-    from labkit.io.exr import _provenance, _read
+    from labkit.io.exr import read_exr, read_provenance
 
     rgb = np.random.default_rng(0).random((6, 8, 3)).astype(np.float32)
     path = tmp_path / "rgb.exr"
     write_rgb_exr(path, rgb, {"kind": "raw", "format": "old", "cfa": "GBRG"})
-    header, _ = _read(path)
-    provenance = _provenance(path, header)
+    header, _ = read_exr(path)
+    provenance = read_provenance(path, header)
     assert provenance["kind"] == "rgb" and provenance["cfa"] == "GBRG"
     assert provenance["format"] != "old"
     np.testing.assert_array_equal(read_rgb_exr(path), rgb)

@@ -10,6 +10,7 @@ import pytest
 from _problems import RESPONSE
 
 import reconstruction.result
+from labkit.errors import DataError
 from labkit.io import read_spectral_exr
 from labkit.spectra import camera_response
 from reconstruction import reconstruct
@@ -40,11 +41,27 @@ def test_spectral_result_round_trips(tmp_path: Path) -> None:
     assert log["patches"]["count"] == result.log["patches"]["count"]
 
 
+def test_spectral_result_as_xarray_matches_the_saved_file(tmp_path: Path) -> None:
+    result = reconstruct(
+        _raw(), cfa=CFA, response=camera_response(RESPONSE), weights="fixed:0.01", patch_px=32
+    )
+    array = result.to_xarray()
+    assert array.dims == ("y", "x", "wavelength") and array.shape == result.spectral.shape
+    np.testing.assert_array_equal(array["wavelength"].values, result.wavelengths_nm)
+    np.testing.assert_array_equal(array.values, result.spectral)
+    assert array.attrs["units"] == "raw units per nm"
+    saved = read_spectral_exr(result.save(tmp_path)["spectral"]).to_xarray()
+    np.testing.assert_array_equal(saved.values, array.values)
+    np.testing.assert_array_equal(saved["wavelength"].values, array["wavelength"].values)
+
+
 def test_colour_result_has_no_spectral_file(tmp_path: Path) -> None:
     result = reconstruct(_raw(), cfa=CFA, latent="colour", weights="fixed:0.01", patch_px=32)
     paths = result.save(tmp_path)
     assert sorted(paths) == ["log", "preview", "raw_colour"]
     assert not (tmp_path / "spectral.exr").exists()
+    with pytest.raises(DataError, match="colour latent space: it has no wavelengths"):
+        result.to_xarray()
 
 
 def test_a_failed_write_leaves_no_log(tmp_path: Path, monkeypatch) -> None:
