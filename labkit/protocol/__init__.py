@@ -2,13 +2,21 @@
 
 from labkit.protocol.bracketing import (
     BracketChoice,
+    choose_bracket,
     choose_exposures,
     estimate_rates,
     exposure_ladder,
     frame_levels,
     meter,
+    metering,
 )
-from labkit.protocol.engine import CaptureReport, CaptureStopped, Engine
+from labkit.protocol.engine import (
+    CaptureReport,
+    CaptureStopped,
+    Engine,
+    check_frame,
+    configure_camera,
+)
 from labkit.protocol.plan import (
     DARK,
     Capture,
@@ -43,11 +51,15 @@ __all__ = [
     "Stage",
     "UncoverLight",
     "build_plan",
+    "check_frame",
+    "choose_bracket",
     "choose_exposures",
+    "configure_camera",
     "estimate_rates",
     "exposure_label",
     "exposure_ladder",
     "frame_levels",
     "meter",
+    "metering",
     "validate_plan",
 ]

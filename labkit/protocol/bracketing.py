@@ -12,7 +12,7 @@ over the distinct runs (a few hundred), not over pixels.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Generator, Sequence
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -21,6 +21,7 @@ from labkit.cfa import pixel_format_bits
 from labkit.devices.camera import Bounds, Camera
 from labkit.errors import DataError
 from labkit.frame import Frame
+from labkit.rig import AutoExposureConfig
 
 #: Metering goes up or down the exposure range by this factor per frame.
 METERING_STEP = 8.0
@@ -213,24 +214,27 @@ def choose_exposures(
     )
 
 
-def meter(
-    camera: Camera,
-    *,
+def metering(
     bounds: Bounds,
+    *,
     maximum_s: float,
     low: float = 0.02,
     high: float = 0.95,
     start_s: float | None = None,
-) -> list[Frame]:
-    """Metering frames: from `start_s`, step down while pixels saturate, up while some are dark.
+) -> Generator[float, Frame, list[Frame]]:
+    """The metering sequence as a generator: it yields the next exposure time, s, and is
+    sent the frame captured at it; it returns the frames when metering is done.
 
-    Stops when the shortest frame has no saturated pixel (or is at the camera minimum)
-    and the longest has every pixel above `low` (or is at `maximum_s`), after at most
-    :data:`MAX_METERING_FRAMES` frames.
+    Start at `start_s` (default: the geometric middle of the allowed range). Step down
+    while pixels saturate, then up from the start while some are dark. Stop when the
+    shortest frame has no saturated pixel (or is at the camera minimum) and the longest
+    has every pixel above `low` (or is at `maximum_s`), after at most
+    :data:`MAX_METERING_FRAMES` frames. :func:`meter` drives it with a camera; a Bluesky
+    plan (:mod:`labkit.bluesky`) drives the same sequence through its RunEngine.
     """
     top = min(bounds.maximum, maximum_s)
     start = start_s or float(np.sqrt(max(bounds.minimum, 1e-6) * top))
-    frames = [camera.grab(start, 1)[0]]
+    frames = [(yield start)]
 
     def levels(frame: Frame) -> np.ndarray:
         black, saturation = frame_levels(frame)
@@ -242,7 +246,7 @@ def meter(
         if len(frames) >= MAX_METERING_FRAMES:
             return frames
         exposure = max(exposure / METERING_STEP, bounds.minimum)
-        frames.append(camera.grab(exposure, 1)[0])
+        frames.append((yield exposure))
         shortest = levels(frames[-1])
     longest = levels(frames[0])
     exposure = start
@@ -250,6 +254,41 @@ def meter(
         if len(frames) >= MAX_METERING_FRAMES:
             break
         exposure = min(exposure * METERING_STEP, top)
-        frames.append(camera.grab(exposure, 1)[0])
+        frames.append((yield exposure))
         longest = levels(frames[-1])
     return frames
+
+
+def meter(
+    camera: Camera,
+    *,
+    bounds: Bounds,
+    maximum_s: float,
+    low: float = 0.02,
+    high: float = 0.95,
+    start_s: float | None = None,
+) -> list[Frame]:
+    """Metering frames grabbed from `camera` (the sequence of :func:`metering`)."""
+    steps = metering(bounds, maximum_s=maximum_s, low=low, high=high, start_s=start_s)
+    exposure = next(steps)
+    try:
+        while True:
+            exposure = steps.send(camera.grab(exposure, 1)[0])
+    except StopIteration as done:
+        return done.value
+
+
+def choose_bracket(
+    frames: Sequence[Frame], bounds: Bounds, auto: AutoExposureConfig
+) -> BracketChoice:
+    """The exposure times of one illumination from its metering frames (the rig's
+    ``plan.auto`` settings): rates, the ladder, then :func:`choose_exposures`."""
+    rate = estimate_rates(frames, high=auto.high_fraction)
+    ladder = exposure_ladder(
+        bounds, maximum_s=auto.max_exposure_s, steps_per_octave=auto.steps_per_octave
+    )
+    choice = choose_exposures(
+        rate, ladder, low=auto.low_fraction, high=auto.high_fraction, margin=auto.margin
+    )
+    choice.metering_s = [float(f.exposure_s) for f in frames]
+    return choice

@@ -17,7 +17,7 @@ from labkit.devices.camera import Camera
 from labkit.devices.slider import FilterSlider
 from labkit.errors import DeviceError, LabkitError
 from labkit.frame import Frame
-from labkit.protocol.bracketing import choose_exposures, estimate_rates, exposure_ladder, meter
+from labkit.protocol.bracketing import choose_bracket, meter
 from labkit.protocol.plan import (
     Capture,
     CoverLight,
@@ -130,6 +130,7 @@ class Engine:
         validate_plan(plan, self.camera, self.slider)
         self._configure_camera()
         self._shape = self.camera.shape  # read once: a device round-trip on real cameras
+        self._serial = self.camera.identity.serial
         session.remove_leftovers()
         problems = session.verify()
         if problems:
@@ -220,16 +221,7 @@ class Engine:
             self.progress.advance(1)
 
     def _check_frame(self, frame: Frame, key: FrameKey) -> None:
-        if frame.status != "SUCCESS":
-            problem = f"buffer status {frame.status}; the session can be resumed"
-        elif frame.image.shape != self._shape:
-            problem = f"image shape {frame.image.shape} ≠ {self._shape}"
-        elif abs(frame.exposure_s - key.exposure_s) > 1e-9 * max(1.0, key.exposure_s):
-            problem = f"exposure {frame.exposure_s} s ≠ planned {key.exposure_s} s"
-        else:
-            return
-        serial = self.camera.identity.serial
-        raise DeviceError(f"camera {serial}, frame {frame.frame_id} for {key.id}: {problem}")
+        check_frame(frame, key, shape=self._shape, serial=self._serial)
 
     def _meter(self, step: Meter, report: CaptureReport) -> None:
         auto = self.rig.plan.auto
@@ -242,14 +234,7 @@ class Engine:
             low=auto.low_fraction,
             high=auto.high_fraction,
         )
-        rate = estimate_rates(frames, high=auto.high_fraction)
-        ladder = exposure_ladder(
-            bounds, maximum_s=auto.max_exposure_s, steps_per_octave=auto.steps_per_octave
-        )
-        choice = choose_exposures(
-            rate, ladder, low=auto.low_fraction, high=auto.high_fraction, margin=auto.margin
-        )
-        choice.metering_s = [float(f.exposure_s) for f in frames]
+        choice = choose_bracket(frames, bounds, auto)
         fixed = self.rig.replicates_for(step.illumination)
         self.session.save_bracket(step.scene, step.illumination, choice.as_dict())
         self.session.log(
@@ -263,24 +248,7 @@ class Engine:
 
     # -- set-up and finish ---------------------------------------------------------------------
     def _configure_camera(self) -> None:
-        config = self.rig.camera
-        if self.camera.pixel_format != config.pixel_format:
-            self.camera.set_pixel_format(config.pixel_format)
-        serial = self.camera.identity.serial
-        if "Gain" not in self.camera.feature_names():
-            if config.gain_db:
-                raise DeviceError(
-                    f"camera {serial} has no Gain feature in dB, so camera.gain_db "
-                    f"{config.gain_db:g} cannot be applied; set camera.gain_db to 0"
-                )
-            return
-        gain = self.camera.gain_bounds()
-        if not gain.contains(config.gain_db):
-            raise DeviceError(
-                f"camera {serial}: gain {config.gain_db:g} dB is outside "
-                f"[{gain.minimum:g}, {gain.maximum:g}] dB; change camera.gain_db in the rig file"
-            )
-        self.camera.set("Gain", config.gain_db)
+        configure_camera(self.camera, self.rig)
 
     def _continue_frame_ids(self) -> None:
         """A simulated camera draws noise by frame id: never reuse one within a session."""
@@ -307,3 +275,46 @@ class Engine:
         )
         session.log("finish", status=status, reason=reason, stored=report.stored_now)
         session.set_status(status, reason)
+
+
+def configure_camera(camera: Camera, rig: Rig) -> None:
+    """Set the rig's pixel format and gain on `camera`, checking the gain first.
+
+    Raises
+    ------
+    DeviceError
+        A gain outside the camera's range, or a non-zero gain on a camera without a
+        ``Gain`` feature in dB.
+    """
+    config = rig.camera
+    if camera.pixel_format != config.pixel_format:
+        camera.set_pixel_format(config.pixel_format)
+    serial = camera.identity.serial
+    if "Gain" not in camera.feature_names():
+        if config.gain_db:
+            raise DeviceError(
+                f"camera {serial} has no Gain feature in dB, so camera.gain_db "
+                f"{config.gain_db:g} cannot be applied; set camera.gain_db to 0"
+            )
+        return
+    gain = camera.gain_bounds()
+    if not gain.contains(config.gain_db):
+        raise DeviceError(
+            f"camera {serial}: gain {config.gain_db:g} dB is outside "
+            f"[{gain.minimum:g}, {gain.maximum:g}] dB; change camera.gain_db in the rig file"
+        )
+    camera.set("Gain", config.gain_db)
+
+
+def check_frame(frame: Frame, key: FrameKey, *, shape: tuple[int, int], serial: str) -> None:
+    """Raise DeviceError unless `frame` is a good capture of `key`: a ``SUCCESS`` buffer of
+    `shape` exposed for the planned time (within 1e-9 relative)."""
+    if frame.status != "SUCCESS":
+        problem = f"buffer status {frame.status}; the session can be resumed"
+    elif frame.image.shape != shape:
+        problem = f"image shape {frame.image.shape} ≠ {shape}"
+    elif abs(frame.exposure_s - key.exposure_s) > 1e-9 * max(1.0, key.exposure_s):
+        problem = f"exposure {frame.exposure_s} s ≠ planned {key.exposure_s} s"
+    else:
+        return
+    raise DeviceError(f"camera {serial}, frame {frame.frame_id} for {key.id}: {problem}")

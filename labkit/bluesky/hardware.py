@@ -1,0 +1,62 @@
+"""Open a rig's devices (real or simulated) as ophyd devices."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from labkit.bluesky.devices import LabkitCamera, LabkitSlider, LabkitStage
+from labkit.protocol.hardware import Hardware, open_hardware
+from labkit.rig import Rig
+
+
+@dataclass
+class BlueskyDevices:
+    """The ophyd devices of an opened rig; close with :meth:`close` or a ``with`` block."""
+
+    camera: LabkitCamera
+    slider: LabkitSlider
+    stage: LabkitStage
+    hardware: Hardware
+
+    def close(self) -> None:
+        """Close the camera, the slider and any simulator."""
+        self.hardware.close()
+
+    def __enter__(self) -> BlueskyDevices:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def open_devices(
+    rig: Rig,
+    *,
+    fast: bool = True,
+    shape: tuple[int, int] | None = None,
+    assume_done: bool = False,
+) -> BlueskyDevices:
+    """Open `rig`'s camera, slider and stage (:func:`labkit.protocol.hardware.open_hardware`)
+    and wrap them as ophyd devices named ``camera``, ``slider`` and ``stage``.
+
+    Parameters
+    ----------
+    fast : bool
+        Simulated devices do not wait for exposures, readout or motor moves.
+    shape : (rows, cols), optional
+        Override the simulated sensor size.
+    assume_done : bool
+        On a real rig, do not ask the operator to change scenes or cover the light.
+    """
+    hardware = open_hardware(rig, fast=fast, shape=shape, assume_done=assume_done)
+    try:
+        names = {slot: p.name for slot, p in rig.slider.positions.items()}
+        return BlueskyDevices(
+            LabkitCamera(hardware.camera, name="camera"),
+            LabkitSlider(hardware.slider, names, name="slider"),
+            LabkitStage(hardware.stage, name="stage"),
+            hardware,
+        )
+    except BaseException:
+        hardware.close()
+        raise
