@@ -3,19 +3,19 @@
 A prior is a sum ``Σ_j w_j S_j(I)`` with ``S_j(I) = ‖D_j I‖_p^p``, where ``D_j`` is one of
 the difference operators of :mod:`reconstruction.operators.priors` and p ∈ {1, 2}:
 
-=================  ===========================================================
-name               terms
-=================  ===========================================================
-``L1``             ‖∇xy I‖₁
-``L2``             ‖∇xy I‖₂²
-``Lap1``           ‖∇²xy I‖₁
-``Lap2``           ‖∇²xy I‖₂²
-``L1L1``           ‖∇xy I‖₁ + ‖∇λ∇xy I‖₁
-``L2L2``           ‖∇xy I‖₂² + ‖∇λ∇xy I‖₂²
-``L1SpatialLap2``  ‖∇xy I‖₁ + ‖∇²xy I‖₂²
-``L1SpectralLap2`` ‖∇λ∇xy I‖₁ + ‖∇²xy I‖₂²
-``VTV``            ‖∇xy I‖₂,₁ (beyond the thesis, see below)
-=================  ===========================================================
+==================  ===========================================================
+name                terms
+==================  ===========================================================
+``L1``              ‖∇xy I‖₁
+``L2``              ‖∇xy I‖₂²
+``Lap1``            ‖∇²xy I‖₁
+``Lap2``            ‖∇²xy I‖₂²
+``L1L1``            ‖∇xy I‖₁ + ‖∇λ∇xy I‖₁
+``L2L2``            ‖∇xy I‖₂² + ‖∇λ∇xy I‖₂²
+``L1SpatialLap2``   ‖∇xy I‖₁ + ‖∇²xy I‖₂²
+``L1SpectralLap2``  ‖∇λ∇xy I‖₁ + ‖∇²xy I‖₂²
+``VTV``             ‖∇xy I‖₂,₁ (beyond the thesis, see below)
+==================  ===========================================================
 
 Each combination may be used with or without non-negativity (a separate option).
 

@@ -52,7 +52,7 @@ MIN_PAD_PX = 8
 """Smallest default patch overlap, px."""
 
 MAX_RAW_MAGNITUDE = 1e30
-"""Largest |raw value| accepted (and smallest non-zero peak, as its inverse): the spectral
+"""Largest abs(raw value) accepted (and smallest non-zero peak, as its inverse): the spectral
 and raw-colour outputs are float32 (largest finite 3.4e38, smallest normal 1.2e-38)."""
 
 REFERENCE_SMOOTHING = 1e-2
@@ -75,7 +75,7 @@ def check_raw(raw: np.ndarray, *, where: str = "the raw image") -> np.ndarray:
     """`raw` as float64 after checking it is a usable Bayer mosaic.
 
     Usable: a 2-D array of real numbers, even-sized, at least 8×8 px, finite, and with a
-    largest |value| of 0 or within [1e-30, 1e30] (:data:`MAX_RAW_MAGNITUDE`).
+    largest abs(value) of 0 or within [1e-30, 1e30] (:data:`MAX_RAW_MAGNITUDE`).
 
     `where` names the image in messages (e.g. its file).
     """

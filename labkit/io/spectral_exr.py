@@ -7,11 +7,13 @@ JCGT 10(3), 2021. Files are written with colour-science's implementation,
 What a labkit spectral EXR holds:
 
 - One float32 channel per band, ``S0.<centre>nm``.
+
   - The layout's decimal separator is a comma (``S0.552,5nm``). colour-science writes 12
     significant digits; the exact float64 centres are in the ``labkit`` attribute.
   - ``S0`` is the layout's emissive (radiance-like) component: labkit images are light
     that reached the camera.
 - ``spectralLayoutVersion`` (``"1.0"``) and ``emissiveUnits``.
+
   - The layout's unit is W·m⁻²·sr⁻¹. labkit's values are relative (raw units per nm), so
     it writes its own unit string, taken from the image's ``units`` entry.
   - The layout's reference reader then warns and reads the values on its own scale, which

@@ -6,8 +6,8 @@ wavelength::
     d(x, y, λ) = A · g(ρ) · r̂ · s(λ)
 
 where ρ = r / r_corner is the distance from the principal point normalised to 1 at the
-image corner, r̂ the unit radial vector, g the radial profile (max |g| = 1 on [0, 1]) and
-s the spectral profile (s(λ_ref) = 0, max |s| = 1 over 400–700 nm). A is therefore the
+image corner, r̂ the unit radial vector, g the radial profile (max abs(g) = 1 on [0, 1]) and
+s the spectral profile (s(λ_ref) = 0, max abs(s) = 1 over 400–700 nm). A is therefore the
 largest displacement at the image corner, pixels. The spectral profile follows from a
 glass dispersion law (Sellmeier, thesis (1.1)–(1.2)): a singlet's magnification scales
 with its focal length ∝ 1 / (n(λ) − 1); an achromatic doublet (N-BK7 + F2, corrected at
@@ -142,7 +142,7 @@ class Lens:
         return 1.0 - rho2 / self.reversal_radius**2
 
     def spectral_factor(self, wavelength_nm: np.ndarray | float) -> np.ndarray:
-        """s(λ): 0 at the reference wavelength, max |s| = 1 over 400–700 nm."""
+        """s(λ): 0 at the reference wavelength, max abs(s) = 1 over 400–700 nm."""
         return self._raw_spectral(np.asarray(wavelength_nm, dtype=np.float64)) / self._spectral_norm
 
     def radial_field(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -191,7 +191,7 @@ class Lens:
     ) -> tuple[np.ndarray, np.ndarray]:
         """Reference-image position imaged at (x, y) for spectral factor `s`, px.
 
-        Solves q + u(q) s = p by fixed-point iteration (|∇u s| ≪ 1, so it converges
+        Solves q + u(q) s = p by fixed-point iteration (‖∇u s‖ ≪ 1, so it converges
         geometrically; three steps leave an error far below 1e-4 px).
         """
         qx, qy = x, y

@@ -67,7 +67,7 @@ def spectral_truth(
 
 
 def model_error(model, lens, reference_nm: float, wavelengths_nm, *, step_px: int = 16) -> dict:
-    """RMS and max |model − the lens' displacement| (px) on a grid in the calibrated region.
+    """RMS and max ‖model − the lens' displacement‖ (px) on a grid in the calibrated region.
 
     A ``to_reference`` model at a band position q is compared with minus the lens'
     displacement at q (exact to first order: the field varies by < 0.3 % of itself over

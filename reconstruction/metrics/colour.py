@@ -40,9 +40,9 @@ class ColourErrors:
     n_pixels : tuple of int
         Pixels evaluated per channel.
     floor : float
-        Threshold on |true value| for the MRAE, image units.
+        Threshold on abs(true value) for the MRAE, image units.
     mrae_excluded : tuple of int
-        Values left out of each channel's MRAE (|I| ≤ floor).
+        Values left out of each channel's MRAE (abs(I) ≤ floor).
     scale : tuple of float or None
         Registration factors applied to the estimate, or None.
     """
@@ -95,8 +95,8 @@ def colour_errors(
         Pixels to evaluate, for all channels or per channel (e.g. the sites of a
         colour-filter array); default all.
     floor : float, optional
-        Values with |I| ≤ floor are left out of the MRAE, image units; default
-        :data:`RELATIVE_FLOOR` × the largest |I| in the mask.
+        Values with abs(I) ≤ floor are left out of the MRAE, image units; default
+        :data:`RELATIVE_FLOOR` × the largest abs(I) in the mask.
     ssim : bool
         Compute SSIM (needs images of at least 11 × 11 px; the SSIM map is averaged
         over each channel's mask when one is given).

@@ -45,9 +45,9 @@ class SpectralErrors:
     n_pixels, n_bands : int
         Pixels evaluated (inside the mask) and bands.
     floor : float
-        Threshold on |true value| (MRAE) and true spectral RMS (GOF), image units.
+        Threshold on abs(true value) (MRAE) and true spectral RMS (GOF), image units.
     mrae_excluded : int
-        Values left out of the MRAE (|I| ≤ floor).
+        Values left out of the MRAE (abs(I) ≤ floor).
     gof_excluded : int
         Pixels left out of the GOF (spectral RMS of I ≤ floor).
     scale : tuple of float or None
@@ -112,9 +112,9 @@ def spectral_errors(
     mask : ndarray (rows, cols) of bool, optional
         Pixels to evaluate (default: all).
     floor : float, optional
-        Values with |I| ≤ floor are left out of the MRAE, pixels whose true spectral
+        Values with abs(I) ≤ floor are left out of the MRAE, pixels whose true spectral
         RMS is ≤ floor out of the GOF; image units. Default :data:`RELATIVE_FLOOR` ×
-        the largest |I| in the mask.
+        the largest abs(I) in the mask.
     ssim : bool
         Compute SSIM (needs images of at least 11 × 11 px; the SSIM map is averaged
         over the mask when one is given).

@@ -154,7 +154,7 @@ def choose_bands(
         Channel spectral responses ``Q_c(λ)`` (relative units), wavelengths in nm; at
         least 4 samples and one channel, each channel with a nonzero response.
     support_fraction : float, optional
-        Fraction of each channel's peak |response| counted as sensitive (default 0.05).
+        Fraction of each channel's peak absolute response counted as sensitive (default 0.05).
     power_fraction : float, optional
         Fraction of the power spectrum (zero frequency excluded) defining the bandlimit
         (default 0.95).

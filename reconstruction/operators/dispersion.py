@@ -70,7 +70,7 @@ class Dispersion(LinearOperator):
         One (rows·cols) × (rows·cols) matrix per band, float64, acting on the band
         flattened in row-major order.
     max_shift_px : float
-        Largest displacement length |e| over the patch's pixels and the bands, px; a
+        Largest displacement length ‖e‖ over the patch's pixels and the bands, px; a
         value well below 0.1 px means Φ could be skipped.
     mean_displacement_px : ndarray (n, 2)
         Mean displacement (e_x, e_y) of each band over the patch, px: the translation
@@ -351,7 +351,7 @@ def dispersion_samples(
     are least accurate). The dispersion scale l of the patch is the larger of
 
     * the thesis' mean length of these eight displacement vectors, and
-    * the mean over the quadrants of the spread |e(λ_max) − e(λ_min)|.
+    * the mean over the quadrants of the spread ‖e(λ_max) − e(λ_min)‖.
 
     The number of samples is n = max(`min_count`, ⌈l / `step_px`⌉ + 1), so consecutive
     sampled wavelengths shift the image by about `step_px` or less on average.
