@@ -40,12 +40,9 @@ from labkit.protocol.bracketing import choose_bracket, metering
 from labkit.protocol.engine import check_frame, configure_camera
 from labkit.protocol.plan import (
     Capture,
-    CoverLight,
     Meter,
-    MoveFilter,
-    SetScene,
-    UncoverLight,
     build_plan,
+    update_desired_state,
     validate_plan,
 )
 from labkit.rig import Rig
@@ -184,13 +181,9 @@ def labkit_plan(
         while True:
             desired: dict[str, Any] = {}
             for step in build_plan(rig, brackets):
-                if isinstance(step, SetScene):
-                    desired["scene"] = step.scene
-                elif isinstance(step, MoveFilter):
-                    desired["slot"] = step.slot
-                elif isinstance(step, CoverLight | UncoverLight):
-                    desired["covered"] = isinstance(step, CoverLight)
-                elif isinstance(step, Meter):
+                if update_desired_state(desired, step):
+                    continue
+                if isinstance(step, Meter):
                     yield from apply(desired, state)
                     yield from meter(step)
                     break  # exposures known now: rebuild the plan

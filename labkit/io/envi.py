@@ -25,8 +25,7 @@ import numpy as np
 
 from labkit.errors import ConfigError, DataError
 from labkit.io.atomic import fsync_directory
-from labkit.io.exr import checked_plane
-from labkit.io.spectral_image import SpectralImage, checked_cube
+from labkit.io.spectral_image import SpectralImage, checked_cube, float32_bands
 
 DATA_SUFFIX = ".img"
 """Suffix of the raw data file written beside the ``.hdr`` header."""
@@ -76,14 +75,7 @@ def write_envi(path: str | Path, image: SpectralImage, *, description: str = "")
     header = Path(path)
     if header.suffix.lower() != ".hdr":
         raise DataError(f"{header}: an ENVI header's name must end in .hdr")
-    try:
-        cube, wavelengths = checked_cube(image.cube, image.wavelengths_nm)
-    except DataError as error:
-        raise DataError(f"{header}: {error}") from None
-    bands = [
-        checked_plane(header, f"band {w:g} nm", cube[:, :, i]) for i, w in enumerate(wavelengths)
-    ]
-    values = np.stack(bands, axis=-1)
+    values, wavelengths = float32_bands(header, image)
     units = str(image.labkit.get("units", "relative"))
     text = " ".join(f"labkit spectral image; values in {units}. {description}".split())
     metadata: dict[str, Any] = {

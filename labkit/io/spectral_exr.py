@@ -39,8 +39,8 @@ import numpy as np
 
 from labkit.errors import ConfigError, DataError
 from labkit.io.atomic import atomic_path
-from labkit.io.exr import FORMAT_VERSION, checked_plane, read_exr, read_provenance
-from labkit.io.spectral_image import SpectralImage, checked_cube
+from labkit.io.exr import FORMAT_VERSION, read_exr, read_provenance
+from labkit.io.spectral_image import SpectralImage, float32_bands
 from labkit.io.tiff import json_default
 
 LAYOUT_VERSION = "1.0"
@@ -67,14 +67,7 @@ def write_spectral_exr(path: str | Path, image: SpectralImage) -> None:
     DataError
         A cube and band centres that do not match, or NaN/Inf values. Nothing is written.
     """
-    try:
-        cube, wavelengths = checked_cube(image.cube, image.wavelengths_nm)
-    except DataError as error:
-        raise DataError(f"{path}: {error}") from None
-    planes = [
-        checked_plane(path, f"band {w:g} nm", cube[:, :, i]) for i, w in enumerate(wavelengths)
-    ]
-    values = np.stack(planes, axis=-1)
+    values, wavelengths = float32_bands(path, image)
     units = str(image.labkit.get("units", DEFAULT_UNITS))
     provenance = {
         "format": FORMAT_VERSION,

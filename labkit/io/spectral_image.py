@@ -4,11 +4,13 @@ conversion to and from an ``xarray.DataArray`` for notebooks."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from labkit.errors import ConfigError, DataError
+from labkit.io.exr import checked_plane
 
 DIMS = ("y", "x", "wavelength")
 """Dimensions of :meth:`SpectralImage.to_xarray`: rows, columns (pixels), band centre (nm)."""
@@ -101,6 +103,20 @@ def checked_cube(cube: np.ndarray, wavelengths_nm: np.ndarray) -> tuple[np.ndarr
     if np.any(np.diff(wavelengths) <= 0):
         raise DataError(f"band centres must increase, got {wavelengths}")
     return cube, wavelengths
+
+
+def float32_bands(path: str | Path, image: SpectralImage) -> tuple[np.ndarray, np.ndarray]:
+    """`image` checked for writing to `path`: its (rows, cols, bands) float32 values and
+    increasing float64 band centres, nm. Raises :class:`DataError` naming the file and the
+    band for a mismatched cube or NaN/Inf values."""
+    try:
+        cube, wavelengths = checked_cube(image.cube, image.wavelengths_nm)
+    except DataError as error:
+        raise DataError(f"{path}: {error}") from None
+    bands = [
+        checked_plane(path, f"band {w:g} nm", cube[:, :, i]) for i, w in enumerate(wavelengths)
+    ]
+    return np.stack(bands, axis=-1), wavelengths
 
 
 def _xarray() -> Any:

@@ -20,14 +20,11 @@ from labkit.frame import Frame
 from labkit.protocol.bracketing import choose_bracket, meter
 from labkit.protocol.plan import (
     Capture,
-    CoverLight,
     FrameKey,
     Meter,
-    MoveFilter,
     Plan,
-    SetScene,
-    UncoverLight,
     build_plan,
+    update_desired_state,
     validate_plan,
 )
 from labkit.protocol.stage import Stage
@@ -169,13 +166,9 @@ class Engine:
             self.progress.set_total(plan.frame_count, sum(writer.has(k) for k in plan.keys()))
             desired: dict[str, Any] = {}
             for step in plan:
-                if isinstance(step, SetScene):
-                    desired["scene"] = step.scene
-                elif isinstance(step, MoveFilter):
-                    desired["slot"] = step.slot
-                elif isinstance(step, CoverLight | UncoverLight):
-                    desired["covered"] = isinstance(step, CoverLight)
-                elif isinstance(step, Meter):
+                if update_desired_state(desired, step):
+                    continue
+                if isinstance(step, Meter):
                     self._apply(desired)
                     self._meter(step, report)
                     break  # exposures known now: rebuild the plan

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 from labkit.devices.camera import Camera
 from labkit.devices.slider import FilterSlider
@@ -135,6 +136,22 @@ class Plan:
         if self.pending_meters:
             total += f" + the auto-bracketed frames of {self.pending_meters} metered step(s)"
         return "\n".join([*lines, f"total: {total}"])
+
+
+def update_desired_state(desired: dict[str, Any], step: Step) -> bool:
+    """Record a set-up step's effect in `desired` (``scene``, ``slot``, ``covered``), the
+    state the hardware must be in before the next capture; returns whether `step` was a
+    set-up step. The engine (and the Bluesky plan) apply it only before frames are taken,
+    so a resumed run goes straight to its first missing frame."""
+    if isinstance(step, SetScene):
+        desired["scene"] = step.scene
+    elif isinstance(step, MoveFilter):
+        desired["slot"] = step.slot
+    elif isinstance(step, CoverLight | UncoverLight):
+        desired["covered"] = isinstance(step, CoverLight)
+    else:
+        return False
+    return True
 
 
 def build_plan(rig: Rig, brackets: Mapping[tuple[str, str], Sequence[float]] | None = None) -> Plan:
