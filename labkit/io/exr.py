@@ -178,21 +178,34 @@ def write_exr(path: str | Path, header: dict[str, Any], channels: dict[str, np.n
 
 
 def read_exr(path: str | Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    import OpenEXR
-
-    path = Path(path)
-    if not path.is_file():
-        raise DataError(f"EXR file {path} does not exist")
+    """The header and the float32 channels of an EXR file; :class:`DataError` if unreadable."""
+    exr = _open(path, header_only=False)
     try:
-        exr = OpenEXR.File(str(path), separate_channels=True)
-        header = dict(exr.header())
         channels = {
             name: np.asarray(channel.pixels, dtype=np.float32)
             for name, channel in exr.channels().items()
         }
     except Exception as error:  # the binding raises bare RuntimeErrors on bad files
         raise DataError(f"{path} is not a readable OpenEXR file ({error})") from None
-    return header, channels
+    return dict(exr.header()), channels
+
+
+def read_exr_header(path: str | Path) -> dict[str, Any]:
+    """The header of an EXR file, pixels not decoded (its ``channels`` entry lists the
+    channels); :class:`DataError` if unreadable."""
+    return dict(_open(path, header_only=True).header())
+
+
+def _open(path: str | Path, *, header_only: bool) -> Any:
+    import OpenEXR
+
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"EXR file {path} does not exist")
+    try:
+        return OpenEXR.File(str(path), separate_channels=True, header_only=header_only)
+    except Exception as error:  # the binding raises bare RuntimeErrors on bad files
+        raise DataError(f"{path} is not a readable OpenEXR file ({error})") from None
 
 
 def read_provenance(path: str | Path, header: dict[str, Any]) -> dict[str, Any]:

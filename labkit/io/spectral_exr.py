@@ -39,7 +39,7 @@ import numpy as np
 
 from labkit.errors import ConfigError, DataError
 from labkit.io.atomic import atomic_path
-from labkit.io.exr import FORMAT_VERSION, read_exr, read_provenance
+from labkit.io.exr import FORMAT_VERSION, read_exr, read_exr_header, read_provenance
 from labkit.io.spectral_image import SpectralImage, float32_bands
 from labkit.io.tiff import json_default
 
@@ -122,13 +122,14 @@ def read_spectral_exr(path: str | Path) -> SpectralImage:
     DataError
         The file is missing, unreadable, or not a spectral image in either layout.
     """
-    header, channels = read_exr(path)
+    header = read_exr_header(path)  # which layout, before any pixel is decoded
     provenance = read_provenance(path, header)
-    if "wavelengths_nm" in header and not _is_layout(header, channels):
-        return _read_older_layout(path, provenance, header, channels)
-    if not _is_layout(header, channels):
+    names = [channel.name for channel in header.get("channels", [])]
+    if "wavelengths_nm" in header and not _is_layout(header, names):
+        return _read_older_layout(path, provenance, header)
+    if not _is_layout(header, names):
         raise DataError(
-            f"{path}: not a spectral EXR (channels {sorted(channels)[:8]}…): expected the "
+            f"{path}: not a spectral EXR (channels {sorted(names)[:8]}…): expected the "
             "Fichet et al. (2021) layout (channels such as 'S0.550nm' or 'T.550nm') or "
             "labkit's older one ('S550.0' with a 'wavelengths_nm' attribute)"
         )
@@ -166,11 +167,9 @@ def _exact_centres(from_names: np.ndarray, provenance: dict[str, Any]) -> np.nda
 
 
 def _read_older_layout(
-    path: str | Path,
-    provenance: dict[str, Any],
-    header: dict[str, Any],
-    channels: dict[str, np.ndarray],
+    path: str | Path, provenance: dict[str, Any], header: dict[str, Any]
 ) -> SpectralImage:
+    _, channels = read_exr(path)
     wavelengths = provenance.get("wavelengths_nm", header.get("wavelengths_nm"))
     wavelengths = np.asarray(wavelengths, dtype=np.float64).ravel()
     try:
@@ -180,7 +179,8 @@ def _read_older_layout(
     return SpectralImage(np.stack(planes, axis=-1), wavelengths, provenance)
 
 
-def _is_layout(header: dict[str, Any], channels: dict[str, np.ndarray]) -> bool:
+def _is_layout(header: dict[str, Any], channels: list[str]) -> bool:
+    """Whether a header (and its channel names) is in the Fichet et al. (2021) layout."""
     if "spectralLayoutVersion" in header:
         return True
     return any(name.startswith(("S0.", "T.")) and name.endswith(("m", "Hz")) for name in channels)
