@@ -84,8 +84,7 @@ class Reconstruction:
                 "use its raw_colour (rows, cols, 3), or reconstruct with --bands"
             )
         centres = np.asarray(self.wavelengths_nm, dtype=np.float64)
-        header = {**recorded_options(self), **(provenance or {})}
-        header.setdefault("software", f"labkit {labkit.__version__}")
+        header = file_header(self, provenance)
         basis = {
             "kernel": self.latent.kernel,
             "spacing_nm": float(centres[1] - centres[0]) if centres.size > 1 else None,
@@ -136,8 +135,7 @@ def save_reconstruction(
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    header = {**recorded_options(result), **(provenance or {})}
-    header.setdefault("software", f"labkit {labkit.__version__}")
+    header = file_header(result, provenance)
     paths: dict[str, Path] = {}
     if result.wavelengths_nm is not None:
         paths["spectral"] = out / "spectral.exr"
@@ -160,6 +158,13 @@ def save_reconstruction(
     text = json.dumps(to_plain(document), indent=2, ensure_ascii=False) + "\n"
     write_text_atomic(paths["log"], text)
     return paths
+
+
+def file_header(result: Reconstruction, provenance: dict[str, Any] | None) -> dict[str, Any]:
+    """What every output file records: the options, the caller's provenance, the software."""
+    header = {**recorded_options(result), **(provenance or {})}
+    header.setdefault("software", f"labkit {labkit.__version__}")
+    return header
 
 
 def recorded_options(result: Reconstruction) -> dict[str, Any]:
