@@ -125,7 +125,7 @@ class Engine:
         started = time.perf_counter()
         plan = self.plan()
         validate_plan(plan, self.camera, self.slider)
-        self._configure_camera()
+        configure_camera(self.camera, self.rig)
         self._shape = self.camera.shape  # read once: a device round-trip on real cameras
         self._serial = self.camera.identity.serial
         session.remove_leftovers()
@@ -240,9 +240,6 @@ class Engine:
         report.brackets[f"{step.scene}/{step.illumination}"] = choice.summary()
 
     # -- set-up and finish ---------------------------------------------------------------------
-    def _configure_camera(self) -> None:
-        configure_camera(self.camera, self.rig)
-
     def _continue_frame_ids(self) -> None:
         """A simulated camera draws noise by frame id: never reuse one within a session."""
         if hasattr(self.camera, "next_frame_id") and self.session.records:
