@@ -139,7 +139,7 @@ def _serve(root: Path, extra: dict[str, str]) -> Iterator[str]:
             self.wfile.write(body)
 
         def log_message(self, format: str, *args: object) -> None:
-            pass
+            """Requests are not logged (the test reads the browser's results instead)."""
 
     server = ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Handler, directory=root))
     thread = threading.Thread(target=server.serve_forever, daemon=True)

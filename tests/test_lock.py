@@ -15,6 +15,11 @@ def normalised(name: str) -> str:
     return re.sub(r"[-_.]+", "-", name).lower()
 
 
+def package(requirement: str) -> str:
+    """The normalised package name of a requirement such as ``"numpy>=1.26"``."""
+    return normalised(re.match(r"[A-Za-z0-9._-]+", requirement)[0])
+
+
 def test_every_requirement_of_the_installed_extras_is_pinned(repo_root: Path) -> None:
     project = tomllib.loads((repo_root / "pyproject.toml").read_text())["project"]
     extras = project["optional-dependencies"]
@@ -25,7 +30,7 @@ def test_every_requirement_of_the_installed_extras_is_pinned(repo_root: Path) ->
     wanted = [*project["dependencies"], *(r for name in names for r in extras[name])]
     lock = (repo_root / "requirements.lock").read_text()
     pinned = {normalised(m) for m in re.findall(r"^([A-Za-z0-9][A-Za-z0-9._-]*)==", lock, re.M)}
-    missing = [r for r in wanted if normalised(re.match(r"[A-Za-z0-9._-]+", r)[0]) not in pinned]
+    missing = [r for r in wanted if package(r) not in pinned]
     assert not missing, f"not pinned in requirements.lock (run `make lock`): {missing}"
 
 
@@ -33,9 +38,8 @@ def test_every_requirement_of_the_installed_extras_is_pinned(repo_root: Path) ->
 def test_the_core_install_stays_lean(repo_root: Path, extra: str) -> None:
     """Sphinx, Bluesky and xarray are extras: `pip install labkit` does not pull them in."""
     project = tomllib.loads((repo_root / "pyproject.toml").read_text())["project"]
-    core = {normalised(re.match(r"[A-Za-z0-9._-]+", r)[0]) for r in project["dependencies"]}
-    optional = {normalised(re.match(r"[A-Za-z0-9._-]+", r)[0])
-                for r in project["optional-dependencies"][extra]}  # fmt: skip
+    core = {package(r) for r in project["dependencies"]}
+    optional = {package(r) for r in project["optional-dependencies"][extra]}
     assert optional and not optional & core, f"{extra}: {sorted(optional & core)} are core"
 
 

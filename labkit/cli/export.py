@@ -10,6 +10,10 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from labkit.io import SpectralImage
 
 FORMATS = {"envi": ".hdr", "exr": ".exr"}
 """Export formats and the suffix of the file that ``--out`` names."""
@@ -54,15 +58,14 @@ def _export(args: argparse.Namespace) -> int:
     image = read_envi(source) if reading_envi else read_spectral_exr(source)
     if args.to == "envi":
         data = write_envi(out, image, description=f"exported from {source.name}")
-        print(f"wrote {out} and {data.name}: {_summary(image.cube.shape, image.wavelengths_nm)}")
+        print(f"wrote {out} and {data.name}: {_summary(image)}")
     else:
         write_spectral_exr(out, image)
-        print(f"wrote {out}: {_summary(image.cube.shape, image.wavelengths_nm)}")
+        print(f"wrote {out}: {_summary(image)}")
     return 0
 
 
-def _summary(shape: tuple[int, ...], wavelengths: object) -> str:
-    import numpy as np
-
-    centres = np.asarray(wavelengths, dtype=float)
-    return f"{shape[0]}×{shape[1]} pixels, {shape[2]} bands {centres.min():g}–{centres.max():g} nm"
+def _summary(image: SpectralImage) -> str:
+    rows, cols, bands = image.cube.shape
+    low, high = image.wavelengths_nm.min(), image.wavelengths_nm.max()
+    return f"{rows}×{cols} pixels, {bands} bands {low:g}–{high:g} nm"
