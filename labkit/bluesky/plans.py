@@ -42,6 +42,7 @@ from labkit.protocol.plan import (
     Capture,
     Meter,
     build_plan,
+    pending_changes,
     update_desired_state,
     validate_plan,
 )
@@ -131,16 +132,12 @@ def labkit_plan(
     brackets: dict[tuple[str, str], list[float]] = {}
 
     def apply(desired: dict[str, Any], state: dict[str, Any]) -> Generator[Any, Any, None]:
-        covered = desired.get("covered", False)
-        if state.get("covered") != covered:
-            yield from bps.mv(stage, ("cover", covered))
-            state["covered"] = covered
-        if "scene" in desired and state.get("scene") != desired["scene"]:
-            yield from bps.mv(stage, ("scene", desired["scene"]))
-            state["scene"] = desired["scene"]
-        if "slot" in desired and state.get("slot") != desired["slot"]:
-            yield from bps.mv(slider, desired["slot"])
-            state["slot"] = desired["slot"]
+        for key, value in pending_changes(desired, state):
+            if key == "slot":
+                yield from bps.mv(slider, value)
+            else:
+                yield from bps.mv(stage, ("cover" if key == "covered" else "scene", value))
+            state[key] = value
 
     def read_frame(exposure_s: float, key: FrameKey, stream: str) -> Generator[Any, Any, Any]:
         yield from bps.mv(camera.exposure_s, exposure_s)

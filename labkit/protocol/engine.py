@@ -8,6 +8,7 @@ Frames are stored by a :class:`~labkit.session.FrameWriter` on background thread
 
 from __future__ import annotations
 
+import functools
 import threading
 import time
 from dataclasses import dataclass, field
@@ -24,6 +25,7 @@ from labkit.protocol.plan import (
     Meter,
     Plan,
     build_plan,
+    pending_changes,
     update_desired_state,
     validate_plan,
 )
@@ -182,20 +184,15 @@ class Engine:
                 return
 
     def _apply(self, desired: dict[str, Any]) -> None:
-        state = self._state
-        covered = desired.get("covered", False)
-        if state.get("covered") != covered:
-            self._act(
-                self.stage.cover_light if covered else self.stage.uncover_light,
-                "cover" if covered else "uncover",
-            )
-            state["covered"] = covered
-        if "scene" in desired and state.get("scene") != desired["scene"]:
-            self._act(lambda: self.stage.set_scene(desired["scene"]), "scene", desired["scene"])
-            state["scene"] = desired["scene"]
-        if "slot" in desired and state.get("slot") != desired["slot"]:
-            self._act(lambda: self.slider.move(desired["slot"]), "move", desired["slot"])
-            state["slot"] = desired["slot"]
+        for key, value in pending_changes(desired, self._state):
+            if key == "covered":
+                action = self.stage.cover_light if value else self.stage.uncover_light
+                self._act(action, "cover" if value else "uncover")
+            elif key == "scene":
+                self._act(functools.partial(self.stage.set_scene, value), "scene", value)
+            else:
+                self._act(functools.partial(self.slider.move, value), "move", value)
+            self._state[key] = value
 
     def _act(self, action: Any, event: str, value: Any = None) -> None:
         self._check_stop()

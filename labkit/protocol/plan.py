@@ -154,6 +154,21 @@ def update_desired_state(desired: dict[str, Any], step: Step) -> bool:
     return True
 
 
+def pending_changes(desired: dict[str, Any], state: dict[str, Any]) -> list[tuple[str, Any]]:
+    """What must change for the hardware `state` to match `desired`, in the order to do it:
+    ``("covered", bool)`` (the light is uncovered unless a step covered it), then
+    ``("scene", name)``, then ``("slot", number)``. Neither mapping is changed: the caller
+    records each change in `state` once it is done."""
+    changes: list[tuple[str, Any]] = []
+    covered = desired.get("covered", False)
+    if state.get("covered") != covered:
+        changes.append(("covered", covered))
+    for key in ("scene", "slot"):
+        if key in desired and state.get(key) != desired[key]:
+            changes.append((key, desired[key]))
+    return changes
+
+
 def build_plan(rig: Rig, brackets: Mapping[tuple[str, str], Sequence[float]] | None = None) -> Plan:
     """The plan of a rig (thesis Algorithm 10).
 
