@@ -1,4 +1,5 @@
-"""Calibration: vignetting, keypoints, dispersion models, channel sensitivity (thesis §3.2, §4.2.4).
+"""Calibration: vignetting, keypoints, dispersion models, channel sensitivity, optical blur
+(thesis §3.2, §4.2.4).
 
 Contents
 --------
@@ -26,6 +27,9 @@ Channel sensitivity (thesis Algorithm 12, :mod:`calibration.sensitivity`)
 Multispectral synthesis (thesis Algorithm 13, :mod:`calibration.multispectral`)
     :class:`Synthesis`, :func:`synthesize_multispectral`, :func:`write_synthesis`,
     :func:`green_bilinear`.
+Optical blur (beyond the thesis, :mod:`calibration.edge_blur`)
+    :class:`EdgeBlur`, :func:`edge_blur` — the blur of a raw image, measured on a chart's
+    patch edges (what the simulated rig's ``blur_sigma_px`` is chosen from).
 HDR inputs
     :func:`load_filtered_hdr`, :func:`load_scene_hdr` — images of an HDR folder.
 """
@@ -41,6 +45,7 @@ from calibration.disks import (
 )
 from calibration.dispersion_calibration import DispersionCalibration, calibrate_dispersion
 from calibration.dispersion_model import DispersionModel, load_dispersion_model
+from calibration.edge_blur import EdgeBlur, edge_blur
 from calibration.keypoints import DispersionKeypoints
 from calibration.multispectral import (
     Synthesis,
@@ -70,6 +75,7 @@ __all__ = [
     "DispersionCalibration",
     "DispersionKeypoints",
     "DispersionModel",
+    "EdgeBlur",
     "FilterBand",
     "Synthesis",
     "VignettingModel",
@@ -82,6 +88,7 @@ __all__ = [
     "correct_spectral",
     "detect_disks",
     "disk_keypoints",
+    "edge_blur",
     "filter_bands",
     "fit_disks",
     "fit_polynomial_model",

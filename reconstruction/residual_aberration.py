@@ -272,7 +272,7 @@ def patch_regions(
             f"strip_px must be at least 2 px (so that every strip holds every CFA channel), "
             f"got {strip_px}"
         )
-    grid = _labels_from_boxes(boxes, shape) if boxes is not None else _check_labels(labels, shape)
+    grid = labels_from_boxes(boxes, shape) if boxes is not None else _check_labels(labels, shape)
     ids = np.unique(grid)
     ids = ids[ids > 0]
     if ids.size == 0:
@@ -379,7 +379,7 @@ def _plane(image: np.ndarray, what: str) -> np.ndarray:
     return plane
 
 
-def _labels_from_boxes(boxes: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+def labels_from_boxes(boxes: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """Label image: patch k + 1 = pixels whose unit box lies inside rectangle k."""
     b = np.asarray(boxes, dtype=np.float64)
     if b.ndim != 2 or b.shape[1] != 4 or not np.all(np.isfinite(b)):

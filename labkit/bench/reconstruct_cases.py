@@ -102,6 +102,7 @@ def simulated_case(
         "colour": colour * exposure,
         "truth": truth,
         "max_shift_px": float(rig.sim.lens.max_shift_px),
+        "blur_px": float(rig.sim.lens.blur_sigma_px),
     }
     if scene == "colorchecker" and flat_fraction == 0:
         from labkit.sim.scenes import colorchecker_patch_boxes

@@ -19,10 +19,12 @@ imaged at p at the reference wavelength is imaged at p + d(p, λ) at wavelength 
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
+from scipy import ndimage, optimize
 
 from labkit.errors import ConfigError
 
@@ -81,7 +83,8 @@ class Lens:
     vignetting : float
         Relative fall-off at the corner (cos⁴ law), 0 = none.
     blur_sigma_px : float
-        Defocus blur, Gaussian standard deviation, px (0 = none).
+        Optical blur (defocus, aberrations, the pixel's own spread), standard deviation of
+        a Gaussian point spread function, px (0 = none); applied by :meth:`blur`.
     """
 
     shape: tuple[int, int]
@@ -212,3 +215,40 @@ class Lens:
         yy, xx = np.mgrid[0:rows, 0:cols].astype(np.float64)
         r2 = (xx - cx) ** 2 + (yy - cy) ** 2
         return ((focal_px**2 / (focal_px**2 + r2)) ** 2).astype(np.float32)
+
+    def blur(self, image: np.ndarray) -> np.ndarray:
+        """`image` (rows, cols, …) blurred by the lens' point spread function, in place.
+
+        The pixel values are convolved along rows and columns with a sampled Gaussian whose
+        width is set so that its variance is exactly σ², σ = ``blur_sigma_px`` (a Gaussian
+        sampled at σ itself loses variance below about 1 px, and σ = 0.45 px acts as
+        0.38 px). Of the discrete kernels tried, this one gives patch edges closest to a
+        continuous Gaussian's (:mod:`calibration.edge_blur`) and passes the least detail
+        near the Nyquist frequency that a continuous Gaussian would remove. Edges repeat
+        the border pixels. With no blur the image is returned as is.
+        """
+        if self.blur_sigma_px <= 0:
+            return image
+        kernel = _variance_matched_gaussian(self.blur_sigma_px)
+        for axis in (0, 1):
+            ndimage.correlate1d(image, kernel, axis=axis, output=image, mode="nearest")
+        return image
+
+
+def _sampled_gaussian(width: float) -> np.ndarray:
+    reach = int(np.ceil(4.0 * width)) + 1
+    n = np.arange(-reach, reach + 1)
+    kernel = np.exp(-0.5 * (n / width) ** 2)
+    return kernel / kernel.sum()
+
+
+def _variance(kernel: np.ndarray) -> float:
+    n = np.arange(kernel.size) - kernel.size // 2
+    return float(np.sum(kernel * n * n))
+
+
+@functools.lru_cache(maxsize=16)
+def _variance_matched_gaussian(sigma: float) -> np.ndarray:
+    """A sampled Gaussian kernel of variance σ² (its width ≥ σ, equal above about 1 px)."""
+    width = optimize.brentq(lambda w: _variance(_sampled_gaussian(w)) - sigma**2, 0.05, sigma + 1)
+    return _sampled_gaussian(width)

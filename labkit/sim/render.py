@@ -5,7 +5,8 @@ For a pixel p and colour channel c the irradiance is (thesis (3.6) with dispersi
     I_c(p) = V(p) Σ_λ w(λ) Q_c(λ) E(λ) Σ_k R_k(λ) a_k(p − d(·, λ))
 
 with trapezoid weights w on the simulation grid (≤ 2 nm), light E, reflectances R_k and
-exact pixel-area coverages a_k of each material (see :mod:`labkit.sim.scenes`). Because
+exact pixel-area coverages a_k of each material (see :mod:`labkit.sim.scenes`), then
+blurred by the lens' point spread function (:meth:`~labkit.sim.lens.Lens.blur`). Because
 d(p, λ) = u(p) s(λ) is separable, the coverage only depends on λ through the scalar
 s(λ). The renderer evaluates coverages at a few *levels* s_j, spaced so that adjacent
 levels move the image by at most `level_step_px`, and folds the whole spectral sum into
@@ -24,7 +25,6 @@ from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
-from scipy import ndimage
 
 from labkit.sim.lens import Lens
 from labkit.sim.scenes import Scene
@@ -112,9 +112,5 @@ def render_irradiance(
 
     if lens.vignetting > 0:
         out *= lens.vignetting_map()[..., None]
-    if lens.blur_sigma_px > 0:
-        for channel in range(out.shape[2]):
-            ndimage.gaussian_filter(
-                out[..., channel], lens.blur_sigma_px, output=out[..., channel], mode="nearest"
-            )
+    lens.blur(out)
     return {name: out[..., 3 * i : 3 * i + 3] for i, name in enumerate(names)}

@@ -2,7 +2,9 @@
 and the lens' dispersion for judging calibrated models (:func:`model_error`).
 
 The truth is the scene without the lens' dispersion: reflectance × light in the reference
-geometry, with vignetting, at the simulator's exact pixel-area coverage. The colour truth
+geometry, with vignetting and the lens' blur (what a lens of the same sharpness but no
+chromatic aberration would give: a reconstruction removes dispersion, not defocus), at the
+simulator's exact pixel-area coverage. The colour truth
 integrates over the simulator's fine spectral grid; the spectral truth averages the light
 over each band's width (the lamp has mercury lines that no band-limited model can hold)
 and samples the reflectances at the band centres. Units: the simulator's irradiance units
@@ -24,7 +26,7 @@ def _scene_parts(world: SimulatedRig, scene: str, illumination: str, pixels=None
     scene_obj = world.scene(scene)
     wavelengths = world.wavelengths
     reflect = scene_obj.materials.resample(wavelengths, extrapolate="constant").values  # (f, K)
-    coverage = scene_obj.coverage_image(world.shape).astype(np.float64)  # (rows, cols, K)
+    coverage = world.lens.blur(scene_obj.coverage_image(world.shape).astype(np.float64))
     vignetting = world.lens.vignetting_map()[..., None]
     if pixels is not None:
         coverage, vignetting = coverage[pixels], vignetting[pixels]

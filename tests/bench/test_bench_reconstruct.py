@@ -49,9 +49,10 @@ def test_a_perfect_reconstruction_scores_zero_and_a_biased_one_does_not() -> Non
     assert scores["spectral_rmse_rel"] < 1e-5
     assert abs(scores["colour_rmse_G"] - 0.1 * _mean_over_peak(case, 1)) < 0.02
     # the colour truth is the render: away from edges the raw differs by the planted noise
+    # (measured 0.0025: on this 48×64 chart the lens blur leaves few pixels far from an edge)
     residual = case["raw"] - _mosaic_of(case)
     robust_std = 1.4826 * np.median(np.abs(residual - np.median(residual)))
-    assert abs(robust_std / np.max(case["colour"]) - 0.002) < 0.0004
+    assert abs(robust_std / np.max(case["colour"]) - 0.002) < 0.0007
 
 
 def _mean_over_peak(case, channel: int) -> float:
@@ -67,14 +68,16 @@ def _mosaic_of(case) -> np.ndarray:
 
 def test_edge_errors_score_the_truth_near_zero_and_bilinear_demosaicing_high() -> None:
     """The ColorChecker cases report the §4.4.3 edge-strip RMSE: the aberration-free colour
-    truth scores at the noise floor (measured 0.0015 in green), bilinear demosaicing of the
-    dispersed raw image far above it (0.028); charts too small for edge strips have none."""
+    truth scores at the floor that the lens blur sets in the pixels next to each edge
+    (measured R/G/B 0.0060/0.0099/0.0067; 0.0015 in green without blur), bilinear
+    demosaicing of the dispersed raw image far above it (0.033 in green); charts too small
+    for edge strips have none."""
     from reconstruction import baseline
 
     case = simulated_case(default_rig_path(), (344, 408), "colorchecker")
     truth = edge_errors(case, case["colour"])
     assert set(truth) == {"edge_rmse_R", "edge_rmse_G", "edge_rmse_B"}
-    assert max(truth.values()) < 0.003
+    assert 0.003 < max(truth.values()) < 0.012
     bilinear = edge_errors(case, baseline(case["raw"], "bilinear", cfa=case["cfa"]))
-    assert bilinear["edge_rmse_G"] > 10 * truth["edge_rmse_G"]
+    assert bilinear["edge_rmse_G"] > 2.5 * truth["edge_rmse_G"]
     assert "boxes" not in simulated_case(default_rig_path(), (64, 80), "colorchecker")

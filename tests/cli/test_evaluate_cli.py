@@ -19,9 +19,14 @@ SHAPE = (256, 320)
 
 @pytest.fixture(scope="module")
 def chart_files(tmp_path_factory: pytest.TempPathFactory, sim_rig_path: Path):
-    """A raw EXR of the rig's ColorChecker (lens dispersion included) and its truth EXR."""
+    """A raw EXR of the rig's ColorChecker (lens dispersion included) and its truth EXR,
+    with the lens' blur off (``sharp.yaml``): blurred patch edges differ from the measure's
+    ideal of uniform patches, so only a sharp truth scores zero."""
     folder = tmp_path_factory.mktemp("evaluate")
-    world = SimulatedRig(load_rig(sim_rig_path), shape=SHAPE)
+    text = sim_rig_path.read_text()
+    assert "blur_sigma_px: 0.40" in text
+    (folder / "sharp.yaml").write_text(text.replace("blur_sigma_px: 0.40", "blur_sigma_px: 0.0"))
+    world = SimulatedRig(load_rig(folder / "sharp.yaml"), shape=SHAPE)
     raw = world.irradiance("colorchecker", "unfiltered").astype(np.float32)
     write_raw_exr(folder / "raw.exr", RawImage(raw, world.rig.cfa, 1.0, "unfiltered"))
     write_rgb_exr(folder / "truth.exr", colour_truth(world, "colorchecker"))
@@ -37,6 +42,7 @@ def test_truth_image_scores_zero_against_the_simulator_and_beats_the_baselines(
     out = chart_files / "out"
     status = main([
         "evaluate", str(chart_files / "raw.exr"), "--scene", "colorchecker", "--truth",
+        "--rig", str(chart_files / "sharp.yaml"),
         "--image", f"truth={chart_files / 'truth.exr'}", "--baselines", "bilinear,menon",
         "--out", str(out),
     ])  # fmt: skip
