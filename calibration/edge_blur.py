@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import ndtr
 
-from labkit.cfa import check_layout
+from labkit.cfa import channel_index
 from labkit.errors import DataError
 
 HALF_WIDTH_PX = 4
@@ -117,7 +117,6 @@ def edge_blur(
     """
     raw = np.asarray(raw, dtype=np.float64)
     labels = np.asarray(labels)
-    check_layout(cfa)
     if raw.ndim != 2 or labels.shape != raw.shape:
         raise DataError(
             f"edge_blur needs a raw image and a label image of one shape, got {raw.shape} "
@@ -125,10 +124,7 @@ def edge_blur(
         )
     if not np.all(np.isfinite(raw)):
         raise DataError("edge_blur: the raw image holds NaN or Inf")
-    green = np.zeros(raw.shape, dtype=bool)
-    for k, channel in enumerate(cfa.upper()):
-        if channel == "G":
-            green[k // 2 :: 2, k % 2 :: 2] = True
+    green = channel_index(cfa, raw.shape) == 1
     profiles = np.concatenate([_profiles(raw, green, labels), _profiles(raw.T, green.T, labels.T)])
     x = np.arange(-HALF_WIDTH_PX, HALF_WIDTH_PX) + 0.5  # the marked edge at 0
     offset, sigma = np.meshgrid(_OFFSETS, _SIGMAS, indexing="ij")
