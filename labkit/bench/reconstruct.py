@@ -269,8 +269,8 @@ def _notes(
     notes: list[str | Plot | Table] = [
         "Reconstruction inputs: simulated renders (1 nm grid, exact pixel areas, true lens "
         f"dispersion up to {main_case['max_shift_px']:g} px, a lens blur of "
-        f"σ = {main_case['blur_px']:g} px as measured on the real frames' patch edges) plus "
-        "Gaussian noise of "
+        f"σ = {main_case['blur_px']:g} px; the default rig's is measured on the real frames' "
+        "patch edges) plus Gaussian noise of "
         f"{NOISE:g} × the brightest raw value; Φ from an analytic to_reference model of the "
         "same lens. Spectral errors are registered per band (4.9) and relative to the mean "
         "truth; colour RMSE is relative to the brightest true raw colour.",
