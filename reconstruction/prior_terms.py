@@ -15,6 +15,7 @@ name                terms
 ``L1SpatialLap2``   ‖∇xy I‖₁ + ‖∇²xy I‖₂²
 ``L1SpectralLap2``  ‖∇λ∇xy I‖₁ + ‖∇²xy I‖₂²
 ``VTV``             ‖∇xy I‖₂,₁ (beyond the thesis, see below)
+``EdgeL2``          ‖√w ⊙ ∇xy I‖₂² (beyond the thesis, see below)
 ==================  ===========================================================
 
 Each combination may be used with or without non-negativity (a separate option).
@@ -32,6 +33,12 @@ the ColorChecker's green edge error below Menon's; the DMC on the ColorChecker p
 smaller weight whose green edge error is above Menon's; the DMC against Menon's demosaic
 (``auto:dmc-menon``) picks one with a lower spectral error and a green edge error below
 Menon's (figures in the README, colour fringes along edges).
+
+``EdgeL2`` is the L2 prior with a weight per pixel and direction taken from the raw image's
+own edges (:mod:`reconstruction.edge_weights`): differences across an edge cost less, so
+unsampled pixels are filled along edges, as directional demosaicing does, while the problem
+stays quadratic (one optimum, L2's solvers and cost). A :class:`~reconstruction.problem.Problem`
+binds the declared term to its raw patch's weights (:class:`EdgeGuidedTerm`).
 """
 
 from __future__ import annotations
@@ -49,6 +56,7 @@ from reconstruction.operators import (
     SpectralDifference,
     SpectralGradient,
     SpectralRoughness,
+    WeightedGradient,
 )
 
 #: "spectral" (∇λ alone, at every spatial frequency) is no prior of Table 3.1; the spectral
@@ -62,19 +70,34 @@ class PriorTerm:
 
     With `grouped` (p = 1 only) the penalty is the mixed norm ``‖D I‖₂,₁``: the 2-norm of
     each pixel's values over bands and directions, summed over pixels.
+
+    With `guided` (the L2 gradient only) the penalty is ``‖√w ⊙ ∇xy I‖₂²`` with edge
+    weights w of the problem's raw patch: :meth:`bind` makes the term of one patch. Unbound,
+    the term stands for all weights 1 (plain L2).
     """
 
     operator: Difference
     norm: Literal[1, 2]
     grouped: bool = False
+    guided: bool = False
 
     def __post_init__(self) -> None:
         if self.grouped and self.norm != 1:
             raise DataError("only an L1 term can be grouped (the mixed norm ‖·‖₂,₁)")
+        if self.guided and (self.operator != "gradient" or self.norm != 2):
+            raise DataError("only the L2 gradient term can be edge-guided")
 
     @property
     def label(self) -> str:
+        if self.guided:
+            return "edge_gradient_L2"
         return f"{self.operator}_L{'21' if self.grouped else self.norm}"
+
+    def bind(self, weights: np.ndarray) -> EdgeGuidedTerm:
+        """The guided term of one patch, with its edge weights (rows, cols, 2)."""
+        if not self.guided:
+            raise DataError(f"the {self.label} term takes no edge weights")
+        return EdgeGuidedTerm(np.asarray(weights, dtype=np.float64))
 
     def difference(self, shape: tuple[int, int, int]) -> LinearOperator:
         """D on images of `shape` (rows, cols, channels), periodic boundary."""
@@ -123,6 +146,47 @@ GROUP_AXES = (2, 3)
 
 
 @dataclass(frozen=True, eq=False)
+class EdgeGuidedTerm:
+    """``‖√w ⊙ ∇xy I‖₂²`` with the edge weights `weights` (rows, cols, 2) of one patch
+    (:func:`~reconstruction.edge_weights.edge_weights`): the bound form of a guided
+    :class:`PriorTerm`, with the same interface. Not circulant: its Fourier pieces, for the
+    FFT solvers (a preconditioner here), are L2's times the mean weight.
+    """
+
+    weights: np.ndarray
+    operator: str = "gradient"
+    norm: Literal[2] = 2
+    grouped: bool = False
+    guided: bool = True
+
+    @property
+    def label(self) -> str:
+        return "edge_gradient_L2"
+
+    @property
+    def mean_weight(self) -> float:
+        return float(np.mean(self.weights))
+
+    def __repr__(self) -> str:  # what FFT solvers' caches key on: the mean alone enters
+        return f"EdgeGuidedTerm(mean_weight={self.mean_weight!r})"
+
+    def difference(self, shape: tuple[int, int, int]) -> WeightedGradient:
+        return WeightedGradient(shape, self.weights)
+
+    def fourier_pieces(
+        self, shape: tuple[int, int], channels: int
+    ) -> list[tuple[np.ndarray, np.ndarray]]:
+        symbol = Laplacian((*shape, 1)).fourier_symbol()
+        return [(self.mean_weight * symbol, np.eye(channels))]
+
+    def quadratic(self) -> EdgeGuidedTerm:
+        return self
+
+    def value(self, d_image: np.ndarray) -> float:
+        return float(np.sum(d_image**2))
+
+
+@dataclass(frozen=True, eq=False)
 class SmoothnessTerm:
     """``‖S I‖²`` with S the :class:`~reconstruction.operators.SpectralRoughness` of the
     colour matrix `colour` (channels × k): the spectral smoothness term of
@@ -155,7 +219,7 @@ class SmoothnessTerm:
 
 
 #: Any penalty a :class:`~reconstruction.problem.Problem` holds.
-Term = PriorTerm | SmoothnessTerm
+Term = PriorTerm | SmoothnessTerm | EdgeGuidedTerm
 
 _G1, _G2 = PriorTerm("gradient", 1), PriorTerm("gradient", 2)
 _S1, _S2 = PriorTerm("spectral_gradient", 1), PriorTerm("spectral_gradient", 2)
@@ -172,6 +236,7 @@ PRIORS: dict[str, tuple[PriorTerm, ...]] = {
     "L1SpatialLap2": (_G1, _L2),
     "L1SpectralLap2": (_S1, _L2),
     "VTV": (PriorTerm("gradient", 1, grouped=True),),
+    "EdgeL2": (PriorTerm("gradient", 2, guided=True),),
 }
 
 

@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from labkit.errors import DataError
+from reconstruction.edge_weights import edge_weights
 from reconstruction.image_formation import ImageFormation
 from reconstruction.operators import LinearOperator
 from reconstruction.prior_terms import PriorTerm, SmoothnessTerm, Term
@@ -72,9 +73,14 @@ class Problem:
     smoothness : float
         σ ≥ 0, the weight of the spectral roughness ‖S I‖² (:class:`SmoothnessTerm`; 0:
         none, as the thesis); needs ≥ 2 channels.
+    edge_weights : ndarray (rows, cols, 2), optional
+        The weights of an edge-guided term (``EdgeL2``); default
+        :func:`~reconstruction.edge_weights.edge_weights` of `raw` (normalised units).
+        None without such a term.
     penalties : list of (float, PriorTerm or SmoothnessTerm, LinearOperator)
-        (weight, term, D) of every prior term and then, when σ > 0, of the smoothness term:
-        what the solvers minimise besides the data term and the ridge.
+        (weight, term, D) of every prior term (a guided one bound to `edge_weights`) and
+        then, when σ > 0, of the smoothness term: what the solvers minimise besides the
+        data term and the ridge.
     """
 
     formation: ImageFormation
@@ -84,6 +90,7 @@ class Problem:
     nonneg: bool = True
     ridge: float | None = None
     smoothness: float = 0.0
+    edge_weights: np.ndarray | None = None
     differences: list[LinearOperator] = field(init=False, repr=False)
     penalties: list[tuple[float, Term, LinearOperator]] = field(init=False, repr=False)
 
@@ -114,11 +121,35 @@ class Problem:
                 "spectral smoothness needs ≥ 2 latent channels; give smoothness=0 for a "
                 "single-channel latent image"
             )
-        self.differences = [t.difference(self.shape) for t in self.terms]
-        self.penalties = list(zip(self.weights, self.terms, self.differences, strict=True))
+        bound = self._bind_edge_weights()
+        self.differences = [t.difference(self.shape) for t in bound]
+        self.penalties = list(zip(self.weights, bound, self.differences, strict=True))
         if self.smoothness > 0:
             smoothing = SmoothnessTerm(self.formation.colour_matrix)
             self.penalties.append((self.smoothness, smoothing, smoothing.difference(self.shape)))
+
+    def _bind_edge_weights(self) -> list[Term]:
+        """The terms, each guided one bound to the edge weights (computed if not given)."""
+        if not any(t.guided for t in self.terms):
+            if self.edge_weights is not None:
+                raise DataError("edge_weights were given, but no prior term is edge-guided")
+            return list(self.terms)
+        rows, cols = self.raw.shape
+        if self.edge_weights is None:
+            self.edge_weights = edge_weights(self.raw, cfa=self.formation.cfa)
+        self.edge_weights = np.asarray(self.edge_weights, dtype=np.float64)
+        if self.edge_weights.shape != (rows, cols, 2):
+            raise DataError(
+                f"edge_weights have shape {self.edge_weights.shape}; the patch needs "
+                f"{(rows, cols, 2)}"
+            )
+        return [t.bind(self.edge_weights) if t.guided else t for t in self.terms]
+
+    @property
+    def circulant(self) -> bool:
+        """Whether every penalty is periodic-shift invariant (no edge-guided term): then,
+        without Φ, the FFT solver is exact."""
+        return self.edge_weights is None
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -139,6 +170,7 @@ class Problem:
             self.nonneg,
             self.ridge,
             self.smoothness,
+            self.edge_weights,
         )
 
     def data_misfit(self, latent: np.ndarray) -> float:

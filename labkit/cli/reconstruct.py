@@ -127,7 +127,8 @@ def register(commands: argparse._SubParsersAction) -> None:
         default="L2",
         help="prior of thesis Table 3.1: L1, L2, Lap1, Lap2, L1L1, L2L2, L1SpatialLap2 or "
         "L1SpectralLap2 (default L2); or VTV, vectorial total variation (edges shared by all "
-        "bands; sharpest edges)",
+        "bands; sharpest edges); or EdgeL2, L2 weighted by the raw image's own edges (fills "
+        "unsampled pixels along edges, at about L2's cost)",
     )
     parser.add_argument(
         "--nonneg",

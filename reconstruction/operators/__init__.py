@@ -15,6 +15,8 @@ Contents
     consecutive bands ≤ 0.1 px apart.
 :class:`Gradient`, :class:`SpectralGradient`, :class:`Laplacian` (§3.5, (3.15)–(3.20))
     Periodic (default) or Neumann differences with their Fourier symbols.
+:class:`WeightedGradient`
+    ∇xy weighted per pixel and direction (the edge-guided L2 prior).
 :class:`SpectralDifference`, :class:`SpectralRoughness`, :func:`smoothest_metamer`
     Per-pixel spectral roughness (the spectral smoothness term beyond the thesis); the
     latter never pulls the patch's mean colour.
@@ -31,6 +33,7 @@ from reconstruction.operators.priors import (
     SpectralDifference,
     SpectralGradient,
     SpectralRoughness,
+    WeightedGradient,
     smoothest_metamer,
 )
 
@@ -49,6 +52,7 @@ __all__ = [
     "SpectralGradient",
     "SpectralRoughness",
     "SpectralToColour",
+    "WeightedGradient",
     "choose_bands",
     "dispersion_samples",
     "dot_test",

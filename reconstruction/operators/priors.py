@@ -3,7 +3,9 @@
 * :class:`Gradient` — spatial gradient ∇_xy (3.15), the operator of prior S₁ (3.14);
 * :class:`SpectralGradient` — spectral-spatial mixed gradient ∇_λ∇_xy (3.17)–(3.18),
   the operator of prior S₂;
-* :class:`Laplacian` — 5-point spatial Laplacian ∇²_xy (3.20), the operator of prior S₃.
+* :class:`Laplacian` — 5-point spatial Laplacian ∇²_xy (3.20), the operator of prior S₃;
+* :class:`WeightedGradient` — ∇_xy with a weight per pixel and direction (the edge-guided
+  L2 prior, beyond the thesis).
 
 Conventions
 -----------
@@ -184,6 +186,49 @@ class Gradient(_SpatialDifference):
 
     def _adjoint(self, y: np.ndarray) -> np.ndarray:
         return self._gradient_adjoint(y)
+
+
+class WeightedGradient(LinearOperator):
+    """Spatial gradient with a weight per pixel and direction: ``√w ⊙ ∇xy``.
+
+    ``out[y, x, c, d] = √w[y, x, d] · (∇xy u)[y, x, c, d]``, so that
+    ``‖out‖² = Σ w |∇xy u|²``: the edge-guided L2 prior's operator
+    (:mod:`reconstruction.edge_weights`). Every channel shares the weights. Periodic
+    boundary, as :class:`Gradient`; not circulant unless the weights are constant, so it
+    has no Fourier symbol (the FFT solvers take the weights' mean instead).
+
+    Parameters
+    ----------
+    shape : tuple of int
+        Domain shape (rows, cols, k).
+    weights : ndarray (rows, cols, 2)
+        w ≥ 0 of each forward difference, ``[..., 0]`` along x, ``[..., 1]`` along y.
+    """
+
+    name = "√w∇xy"
+
+    def __init__(self, shape: tuple[int, int, int], weights: np.ndarray) -> None:
+        shape = _check_shape(shape, "WeightedGradient")
+        weights = np.asarray(weights, dtype=np.float64)
+        if weights.shape != (*shape[:2], 2):
+            raise DataError(
+                f"WeightedGradient needs weights of shape {(*shape[:2], 2)} (rows, cols, "
+                f"direction), got {weights.shape}"
+            )
+        if not np.all(np.isfinite(weights)) or np.any(weights < 0):
+            raise DataError("WeightedGradient's weights must be finite and ≥ 0")
+        super().__init__(shape, (*shape, 2))
+        self.weights = weights
+        self._gradient = Gradient(shape)
+        self._root = np.sqrt(weights)[:, :, None, :]
+
+    def _forward(self, x: np.ndarray) -> np.ndarray:
+        out = self._gradient.forward(x)
+        out *= self._root
+        return out
+
+    def _adjoint(self, y: np.ndarray) -> np.ndarray:
+        return self._gradient.adjoint(y * self._root)
 
 
 class SpectralGradient(_SpatialDifference):

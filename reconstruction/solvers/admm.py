@@ -211,7 +211,7 @@ class _QuadraticStep:
         self.splits = splits
         self.cg_rtol, self.cg_max_iter = cg_rtol, cg_max_iter
         self.formation = problem.formation
-        self.exact = self.formation.dispersion is None
+        self.exact = self.formation.dispersion is None and problem.circulant
         self._curvature = data_curvature(problem)
         self.cg_iterations: list[int] = []
         self.cg_residual = 0.0

@@ -6,7 +6,7 @@ import numpy as np
 from scipy import ndimage
 
 from labkit.spectra import camera_response
-from reconstruction.image_formation import ImageFormation, LatentSpace
+from reconstruction.image_formation import ImageFormation, LatentSpace, build_formation
 
 RESPONSE = "Nikon 5100 (NPL)"
 
@@ -64,4 +64,15 @@ def rig_lens_model(shape: tuple[int, int] = (2048, 2448)):
         shape=shape,
         direction="to_reference",
         wavelength_span=(400.0, 700.0),
+    )
+
+
+def rig_corner_formation(shape: tuple[int, int]) -> ImageFormation:
+    """A at the top-left corner of the simulated rig's lens (Φ up to ≈ 2 px), colour scaled
+    so the brightest raw channel peaks at 1 — through `colour_gain`, so that A and the FFT
+    solver's colour agree (rescaling ``colour_matrices`` afterwards changes only the latter)."""
+    a = build_formation(latent_space(), shape, "GBRG", model=rig_lens_model(), origin=(0, 0))
+    gain = 1.0 / a.colour_matrix.sum(axis=1).max()
+    return build_formation(
+        latent_space(), shape, "GBRG", model=rig_lens_model(), origin=(0, 0), colour_gain=gain
     )

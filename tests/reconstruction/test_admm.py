@@ -4,7 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from _problems import latent_space, noisy_raw, normalised_colour, rig_lens_model, smooth_blobs
+from _problems import (
+    latent_space,
+    noisy_raw,
+    normalised_colour,
+    rig_corner_formation,
+    smooth_blobs,
+)
 from scipy.optimize import minimize
 
 from labkit.errors import DataError
@@ -16,17 +22,6 @@ from reconstruction.solvers.active_set import polish, solve_periodic
 from reconstruction.solvers.admm import initial_estimate, quadratic_system, solve
 
 SHAPE = (32, 32)
-
-
-def rig_corner_formation(shape: tuple[int, int]) -> ImageFormation:
-    """A at the top-left corner of the simulated rig's lens (Φ up to ≈ 2 px), colour scaled
-    so the brightest raw channel peaks at 1 — through `colour_gain`, so that A and the FFT
-    solver's colour agree (rescaling ``colour_matrices`` afterwards changes only the latter)."""
-    a = build_formation(latent_space(), shape, "GBRG", model=rig_lens_model(), origin=(0, 0))
-    gain = 1.0 / a.colour_matrix.sum(axis=1).max()
-    return build_formation(
-        latent_space(), shape, "GBRG", model=rig_lens_model(), origin=(0, 0), colour_gain=gain
-    )
 
 
 def problem(
