@@ -531,11 +531,12 @@ def _write_report(report, rigs, rig_file, shape, times, captures, models, recons
     )
     report.heading("Reconstruction")
     report.paragraph(
-        "Problem (3.1): L2 prior, non-negativity, the calibrated dispersion model, weights "
-        "by the demosaicing criterion; patch-wise on Dask with flat patches and negligible "
-        "dispersion skipped. The §6.3 variant reconstructs relative to a smooth spectrum "
-        "fitted to the image's mean colour; the §3.9.2 variant solves without Φ and then "
-        "warps every band onto the 600 nm geometry with the same (inverted) model."
+        "Problem (3.1): the edge-guided L2 prior (EdgeL2), non-negativity, the calibrated "
+        "dispersion model, weights by the demosaicing criterion; patch-wise on Dask with "
+        "flat patches and negligible dispersion skipped. The §6.3 variant reconstructs "
+        "relative to a smooth spectrum fitted to the image's mean colour; the §3.9.2 variant "
+        "solves without Φ and then warps every band onto the 600 nm geometry with the same "
+        "(inverted) model."
     )
     report.table(
         ["image", "time (s)", "bands (nm)", "weight", "patches", "Φ used", "flat",

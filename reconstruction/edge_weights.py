@@ -4,10 +4,7 @@ The L2 prior ‖∇xy I‖₂² fills the pixels a Bayer channel does not sample
 across edges as much as along them: the green channel's one-pixel fringe along every edge
 that bilinear demosaicing also has. Directional demosaicing (Menon et al. 2007) avoids it by
 interpolating along the edge. This prior does the same inside problem (3.1): each forward
-difference of the gradient gets a weight
-
-    w = floor + (1 − floor) / (1 + (|ΔL| / κ)²)
-
+difference of the gradient gets a weight ``w = floor + (1 − floor) / (1 + (ΔL / κ)²)``
 from the same difference ΔL of a guide image L, the mean over channels of the raw
 patch's Menon demosaic: a difference that crosses an edge of the guide is penalised
 ``floor`` times as much as one in a flat area, so a pixel takes its value from its

@@ -131,9 +131,12 @@ class ReconstructOptions:
         or Keys' cubic convolution, which shifts without bilinear's blur and so without
         the overshoot it provokes at edges, at a higher run time (figures in the README).
     prior : str
-        A combination of Table 3.1 (``L1``, ``L2``, ``Lap1``, ``Lap2``, ``L1L1``,
-        ``L2L2``, ``L1SpatialLap2``, ``L1SpectralLap2``), or ``VTV``: vectorial total
-        variation ‖∇xy I‖₂,₁, which places edges at the same position in every band
+        ``EdgeL2`` (default): the L2 prior weighted per pixel and direction by the raw
+        image's own edges (:mod:`reconstruction.edge_weights`), so that pixels a Bayer
+        channel does not sample are filled along edges rather than across; a combination
+        of Table 3.1 (``L1``, ``L2``, ``Lap1``, ``Lap2``, ``L1L1``, ``L2L2``,
+        ``L1SpatialLap2``, ``L1SpectralLap2``); or ``VTV``: vectorial total variation
+        ‖∇xy I‖₂,₁, which places edges at the same position in every band
         (:mod:`reconstruction.prior_terms`).
     nonneg : bool
         Constrain the latent image to be non-negative.
@@ -209,7 +212,7 @@ class ReconstructOptions:
     dispersion: DispersionModel | str | Path | None = None
     correction: str = "model"
     interpolation: str = "bilinear"
-    prior: str = "L2"
+    prior: str = "EdgeL2"
     nonneg: bool = True
     spectral_smoothness: float | None = None
     weights: str | Sequence[float] = "auto:dmc"

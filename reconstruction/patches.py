@@ -19,6 +19,8 @@ What a patch may skip
   nothing measurable, so Φ is dropped as well, and ADMM's start (below) is then nearly
   the answer: a flat patch converges in one or two iterations. Without the noise
   allowance a 0.2 % noise level alone would already make every patch "textured".
+  With the edge-guided prior (``EdgeL2``) a flat patch has no edges to guide by: its edge
+  weights are all 1, which makes its problem plain L2's, solved exactly by FFT without Φ.
 
 Every patch with something to split (non-negativity, L1 terms) starts ADMM from
 :func:`~reconstruction.solvers.admm.initial_estimate` — one FFT solve with Φ as mean
@@ -235,8 +237,16 @@ def solve_patch(
         interpolation=solver.interpolation,
     )
     record["formation_seconds"] = time.perf_counter() - built
+    # a flat patch has no edges to guide by: unit weights keep its problem circulant
+    guided = any(t.guided for t in solver.terms)
     problem = Problem(
-        formation, raw, solver.terms, solver.weights, solver.nonneg, smoothness=solver.smoothness
+        formation,
+        raw,
+        solver.terms,
+        solver.weights,
+        solver.nonneg,
+        smoothness=solver.smoothness,
+        edge_weights=np.ones((*shape, 2)) if guided and flat else None,
     )
     solution = solve(
         problem,

@@ -167,6 +167,11 @@ class EdgeGuidedTerm:
     def mean_weight(self) -> float:
         return float(np.mean(self.weights))
 
+    @property
+    def constant(self) -> bool:
+        """Whether every edge weight is the same (the term is then circulant)."""
+        return bool(np.all(self.weights == self.weights.flat[0]))
+
     def __repr__(self) -> str:  # what FFT solvers' caches key on: the mean alone enters
         return f"EdgeGuidedTerm(mean_weight={self.mean_weight!r})"
 

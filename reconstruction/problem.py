@@ -37,10 +37,16 @@ from labkit.errors import DataError
 from reconstruction.edge_weights import edge_weights
 from reconstruction.image_formation import ImageFormation
 from reconstruction.operators import LinearOperator
-from reconstruction.prior_terms import PriorTerm, SmoothnessTerm, Term
+from reconstruction.prior_terms import EdgeGuidedTerm, PriorTerm, SmoothnessTerm, Term
 
 RIDGE = 1e-9
 """ε of the ridge term, relative to the largest eigenvalue of a pixel's CᵀC."""
+
+NEGLIGIBLE_GUIDANCE = 1e-6
+"""An edge-guided term whose weight times its edge weights' spread (times ‖∇ᵀ∇‖ = 8) is at
+most this fraction of the data curvature takes its mean edge weight everywhere: its
+matrix then differs from the circulant one by less than the solvers' tolerances, and the
+exact FFT solvers apply (the tiny weights a weight search tries)."""
 
 SUGGESTED_SMOOTHNESS = 1e-3
 """σ (normalised units, like the weights): the default of
@@ -143,13 +149,36 @@ class Problem:
                 f"edge_weights have shape {self.edge_weights.shape}; the patch needs "
                 f"{(rows, cols, 2)}"
             )
-        return [t.bind(self.edge_weights) if t.guided else t for t in self.terms]
+        bound = []
+        for weight, term in zip(self.weights, self.terms, strict=True):
+            if not term.guided:
+                bound.append(term)
+                continue
+            edges = self.edge_weights
+            # ‖∇ᵀ∇‖ = 8: how far the term's matrix is from its mean-weight circulant one
+            if weight * 8.0 * float(np.ptp(edges)) <= NEGLIGIBLE_GUIDANCE * self.data_curvature:
+                edges = np.full_like(edges, float(np.mean(edges)))
+            bound.append(term.bind(edges))
+        return bound
 
     @property
     def circulant(self) -> bool:
-        """Whether every penalty is periodic-shift invariant (no edge-guided term): then,
-        without Φ, the FFT solver is exact."""
-        return self.edge_weights is None
+        """Whether every penalty is periodic-shift invariant (edge-guided terms only with
+        constant weights): then, without Φ, the FFT solver is exact."""
+        return not any(
+            isinstance(t, EdgeGuidedTerm) and not t.constant for _, t, _ in self.penalties
+        )
+
+    @property
+    def data_curvature(self) -> float:
+        """Mean diagonal of 2AᵀA per latent value (dispersion aside).
+
+        With the colour matrix C and the Bayer channel fractions f = (¼, ½, ¼) this is
+        ``2 Σ_c f_c ‖C_c‖² / n``.
+        """
+        c = self.formation.colour_matrix
+        fractions = np.array([0.25, 0.5, 0.25])
+        return float(2.0 * np.sum(fractions * np.sum(c * c, axis=1)) / c.shape[1])
 
     @property
     def shape(self) -> tuple[int, int, int]:

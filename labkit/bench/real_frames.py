@@ -27,6 +27,7 @@ MAIN_VARIANTS: tuple[tuple[str, dict[str, Any]], ...] = (
     ("§6.3 mean-colour reference", {"reference": "mean-colour"}),
     ("§6.3 mean-colour reference, σ = 0", {"reference": "mean-colour", "spectral_smoothness": 0.0}),
     ("no non-negativity", {"nonneg": False}),
+    ("L2 prior (the thesis')", {"prior": "L2"}),
     (
         "VTV, cubic Φ, auto:dmc-menon, σ = 0",
         {

@@ -45,10 +45,9 @@ def scaling_cases(rig_path: Path, sizes: tuple[int, ...], *, repeats: int) -> li
             short_s=SHORT_S,
             bands=case_bands(case, 7),
             dispersion=case["model"],
-            prior="L2",
         )
         measured = to_measurement(
-            f"scaling: {side}×{side} texture, 7 bands, L2, nonneg, Φ, auto:dmc",
+            f"scaling: {side}×{side} texture, 7 bands, EdgeL2, nonneg, Φ, auto:dmc",
             float(np.median(times)),
             times,
             None,

@@ -95,7 +95,9 @@ DIRECT_MAX_ZEROS = 600
 unconstrained optimum) for which a direct exact solve (``direct``, or ``exact_nonneg``
 with spectral smoothness and Φ) skips ADMM: the active-set methods factorise a dense block
 over the values held at zero, which costs more than ADMM once they number in the
-thousands."""
+thousands. No limit for ``exact_nonneg`` without Φ (an edge-guided prior's weight search,
+whose ADMM steps need CG): ADMM there costs more than the rounds, as for
+:func:`~reconstruction.solvers.active_set.solve_periodic`."""
 DIRECT_CG_RTOL = 1e-6
 """CG tolerance of the projected-Newton rounds that replace ADMM for an exact solve with Φ
 and spectral smoothness (the KKT test, not this, decides when the optimum is reached)."""
@@ -311,14 +313,11 @@ def _ridge(problem: Problem) -> float:
 def data_curvature(problem: Problem) -> float:
     """Mean diagonal of 2AᵀA per latent value (dispersion aside): the default ρ.
 
-    With the colour matrix C and the Bayer channel fractions f = (¼, ½, ¼) this is
-    ``2 Σ_c f_c ‖C_c‖² / n``. On textured patches ADMM reaches the optimum in far fewer
-    iterations with ρ near this value than with ρ ten times larger (figures in the README,
-    how it works).
+    :attr:`Problem.data_curvature <reconstruction.problem.Problem.data_curvature>`. On
+    textured patches ADMM reaches the optimum in far fewer iterations with ρ near this
+    value than with ρ ten times larger (figures in the README, how it works).
     """
-    c = problem.formation.colour_matrix
-    fractions = np.array([0.25, 0.5, 0.25])
-    return float(2.0 * np.sum(fractions * np.sum(c * c, axis=1)) / c.shape[1])
+    return problem.data_curvature
 
 
 def absolute_tolerance(raw: np.ndarray, rtol: float, q_max: float = 1.0) -> float:
@@ -435,7 +434,12 @@ def solve(
             # a unique optimum: projected Newton straight from the initial estimate, whose
             # matrix K̃ is here, priors being quadratic
             start = x0 if x0 is not None else initial_estimate(problem, solver=exact.solver)
-            if int(np.count_nonzero(start <= 0)) <= DIRECT_MAX_ZEROS:
+            # without Φ (an edge-guided prior's weight search), ADMM with CG costs more than
+            # the active-set rounds however many values start at zero, as for solve_periodic
+            limit = (
+                None if exact_nonneg and exact.formation.dispersion is None else DIRECT_MAX_ZEROS
+            )
+            if limit is None or int(np.count_nonzero(start <= 0)) <= limit:
                 x_exact, report.polish = polish(
                     problem, start, exact.apply, exact.solver, cg_rtol=DIRECT_CG_RTOL
                 )

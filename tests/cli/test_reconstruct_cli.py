@@ -75,7 +75,8 @@ def inputs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 
 def test_smooth_scene_known_answer(inputs, tmp_path: Path, capsys) -> None:
     """Fixed weight, no dispersion, the thesis' problem (σ = 0: the synthetic colours need
-    no smooth spectra), exact L2 solve: band centres, shape, raw colour, log."""
+    no smooth spectra) with the default prior (EdgeL2), one quadratic solve: band centres,
+    shape, raw colour, log."""
     out = tmp_path / "out"
     args = ["reconstruct", str(inputs["smooth"]), "--response", str(inputs["response"]),
             "--bands", BANDS, "--weights", "fixed:0.001", "--no-nonneg", "--patch-px", "32",
@@ -93,7 +94,7 @@ def test_smooth_scene_known_answer(inputs, tmp_path: Path, capsys) -> None:
     meta = spectral.labkit
     assert meta["kind"] == "spectral" and meta["input"] == str(inputs["smooth"])
     assert meta["response"] == str(inputs["response"]) and meta["rig"] is None
-    assert meta["prior"] == "L2" and meta["nonneg"] is False
+    assert meta["prior"] == "EdgeL2" and meta["nonneg"] is False
     assert meta["weights"] == {"requested": "fixed:0.001", "criterion": "fixed", "values": [0.001]}
     assert meta["raw"]["cfa"] == "GBRG" and meta["basis"]["spacing_nm"] == 50.0
 

@@ -12,7 +12,7 @@ from reconstruction.edge_weights import EDGE_FLOOR, edge_weights
 from reconstruction.image_formation import ImageFormation
 from reconstruction.operators import Gradient, WeightedGradient, dot_test
 from reconstruction.prior_terms import PRIORS, EdgeGuidedTerm, PriorTerm
-from reconstruction.problem import SUGGESTED_SMOOTHNESS, Problem
+from reconstruction.problem import NEGLIGIBLE_GUIDANCE, SUGGESTED_SMOOTHNESS, Problem
 from reconstruction.solvers.admm import solve
 
 SHAPE = (32, 32)
@@ -133,3 +133,22 @@ def test_edge_guided_solve_reaches_the_optimum(with_phi: bool) -> None:
     gap = (default.report.objective - reference.report.objective) / reference.report.objective
     assert default.report.converged
     assert gap < 1e-4, gap
+
+
+def test_constant_or_negligible_guidance_keeps_the_problem_circulant() -> None:
+    """Unit weights (a flat patch) make the problem L2's, solved exactly by FFT; a weight so
+    small that the edge weights' spread moves the matrix by less than NEGLIGIBLE_GUIDANCE
+    of the data curvature (a weight search's tiny weights) takes the mean edge weight."""
+    rng = np.random.default_rng(7)
+    a, _, raw = step_scene(rng)
+    flat = Problem(a, raw, PRIORS["EdgeL2"], (0.05,), True, edge_weights=np.ones((*SHAPE, 2)))
+    plain = Problem(a, raw, PRIORS["L2"], (0.05,), True)
+    assert flat.circulant
+    assert solve(flat).report.objective == pytest.approx(solve(plain).report.objective, rel=1e-9)
+    edges = edge_weights(raw, cfa="GBRG")
+    spread = float(np.ptp(edges))
+    tiny = 0.5 * NEGLIGIBLE_GUIDANCE * plain.data_curvature / (8.0 * spread)
+    bound = Problem(a, raw, PRIORS["EdgeL2"], (tiny,), True).penalties[0][1]
+    assert bound.constant and bound.mean_weight == pytest.approx(float(np.mean(edges)))
+    assert Problem(a, raw, PRIORS["EdgeL2"], (tiny,), True).circulant
+    assert not Problem(a, raw, PRIORS["EdgeL2"], (4 * tiny,), True).circulant
