@@ -54,7 +54,8 @@ model = calibrate_dispersion(
 # Reconstruct
 # -----------
 # :class:`~reconstruction.ReconstructOptions` checks every option before any work; the
-# defaults are the L2 prior, non-negativity, spectral smoothness and weights chosen by
+# defaults are the edge-guided L2 prior (``EdgeL2``: the thesis' L2 prior weighted by
+# the raw image's own edges), non-negativity, spectral smoothness and weights chosen by
 # the demosaicing criterion (thesis Algorithm 3). The bands default to the response's
 # bandlimit.
 image = read_raw_exr(out / "hdr" / "colorchecker" / "unfiltered.exr")
