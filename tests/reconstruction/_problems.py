@@ -45,6 +45,20 @@ def noisy_raw(
     return truth, raw + noise * raw.mean() * rng.standard_normal(raw.shape)
 
 
+def noisy_step(
+    shape: tuple[int, int], rng: np.random.Generator
+) -> tuple[ImageFormation, np.ndarray, np.ndarray]:
+    """(A, truth, raw): grey left of the middle column, yellow from it on, 1 % noise."""
+    colour = normalised_colour()
+    a = ImageFormation(shape, "GBRG", colour[None])
+    x = np.linspace(0.0, 1.0, colour.shape[1])
+    yellow = 0.05 + 0.9 / (1.0 + np.exp(-(x - 0.45) * 20.0))
+    truth = np.full((*shape, x.size), 0.1)
+    truth[:, shape[1] // 2 :] = yellow
+    raw = a.forward(truth)
+    return a, truth, raw + 0.01 * raw.mean() * rng.standard_normal(raw.shape)
+
+
 def rig_lens_model(shape: tuple[int, int] = (2048, 2448)):
     """A to_reference spectral model of the simulated rig's lens at full sensor size.
 

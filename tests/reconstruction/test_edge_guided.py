@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from _problems import normalised_colour, rig_corner_formation, smooth_blobs
+from _problems import noisy_step, normalised_colour, rig_corner_formation, smooth_blobs
 
 from labkit.errors import DataError
 from reconstruction.edge_weights import EDGE_FLOOR, edge_weights
@@ -16,18 +16,6 @@ from reconstruction.problem import NEGLIGIBLE_GUIDANCE, SUGGESTED_SMOOTHNESS, Pr
 from reconstruction.solvers.admm import solve
 
 SHAPE = (32, 32)
-
-
-def step_scene(rng: np.random.Generator) -> tuple[ImageFormation, np.ndarray, np.ndarray]:
-    """Grey on the left, yellow from column 16 on (the VTV test's edge), 1 % noise."""
-    colour = normalised_colour()
-    a = ImageFormation(SHAPE, "GBRG", colour[None])
-    x = np.linspace(0.0, 1.0, colour.shape[1])
-    yellow = 0.05 + 0.9 / (1.0 + np.exp(-(x - 0.45) * 20.0))
-    truth = np.full((*SHAPE, x.size), 0.1)
-    truth[:, 16:] = yellow
-    raw = a.forward(truth)
-    return a, truth, raw + 0.01 * raw.mean() * rng.standard_normal(raw.shape)
 
 
 @pytest.mark.parametrize("dtype, tolerance", [(np.float64, 1e-10), (np.float32, 1e-5)])
@@ -74,7 +62,7 @@ def test_problem_binds_the_guided_term_to_its_patch() -> None:
     """Problem computes the weights from its raw patch unless given, penalises
     Σ w |∇I|², and says it is not circulant (the FFT solve is then only a preconditioner)."""
     rng = np.random.default_rng(3)
-    a, truth, raw = step_scene(rng)
+    a, truth, raw = noisy_step(SHAPE, rng)
     p = Problem(a, raw, PRIORS["EdgeL2"], (0.5,), True)
     assert isinstance(p.penalties[0][1], EdgeGuidedTerm) and not p.circulant
     np.testing.assert_array_equal(p.edge_weights, edge_weights(raw, cfa="GBRG"))
@@ -93,12 +81,12 @@ def test_problem_binds_the_guided_term_to_its_patch() -> None:
 
 
 def test_edge_guided_prior_keeps_a_planted_edge() -> None:
-    """The step edge of the VTV test, L2 and EdgeL2 at the same weight: L2 smears the
-    unsampled values across the edge (worst raw-colour error in columns 14–17 measured
+    """The step edge of the VTV test (``noisy_step``), L2 and EdgeL2 at the same weight:
+    L2 smears the unsampled values across the edge (worst raw-colour error in columns 14–17 measured
     0.24), the guided prior fills them along it (measured 0.10) and fits the flat part as
     well (RMSE 0.0017 both)."""
     rng = np.random.default_rng(5)
-    a, truth, raw = step_scene(rng)
+    a, truth, raw = noisy_step(SHAPE, rng)
     colour = normalised_colour()
     worst, far = {}, {}
     for prior in ("L2", "EdgeL2"):
@@ -140,7 +128,7 @@ def test_constant_or_negligible_guidance_keeps_the_problem_circulant() -> None:
     small that the edge weights' spread moves the matrix by less than NEGLIGIBLE_GUIDANCE
     of the data curvature (a weight search's tiny weights) takes the mean edge weight."""
     rng = np.random.default_rng(7)
-    a, _, raw = step_scene(rng)
+    a, _, raw = noisy_step(SHAPE, rng)
     flat = Problem(a, raw, PRIORS["EdgeL2"], (0.05,), True, edge_weights=np.ones((*SHAPE, 2)))
     plain = Problem(a, raw, PRIORS["L2"], (0.05,), True)
     assert flat.circulant
