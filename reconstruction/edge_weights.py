@@ -24,6 +24,7 @@ import numpy as np
 
 from labkit.errors import DataError
 from reconstruction.baselines import demosaic_menon
+from reconstruction.operators import Gradient
 
 EDGE_CONTRAST = 0.05
 """κ: a guide difference of this fraction of the raw level halves a weight's excess over
@@ -77,13 +78,10 @@ def edge_weights(
         raise DataError(f"edge contrast κ must be > 0, got {contrast}")
     if not (0 < floor <= 1):
         raise DataError(f"edge weight floor must be in (0, 1], got {floor}")
-    guide = np.mean(demosaic_menon(raw, cfa), axis=2, dtype=np.float64)
-    kappa = contrast * level
-    weights = np.empty((*raw.shape, 2))
-    for d, axis in enumerate((1, 0)):  # x: along columns, y: along rows
-        step = (np.roll(guide, -1, axis=axis) - guide) / kappa
-        weights[..., d] = floor + (1.0 - floor) / (1.0 + step * step)
-    return weights
+    guide = np.mean(demosaic_menon(raw, cfa), axis=2, keepdims=True, dtype=np.float64)
+    # the guide's differences are those the weights multiply: Gradient's, (rows, cols, 2)
+    step = Gradient(guide.shape).forward(guide)[:, :, 0, :] / (contrast * level)
+    return floor + (1.0 - floor) / (1.0 + step * step)
 
 
 __all__ = ["EDGE_CONTRAST", "EDGE_FLOOR", "edge_weights"]

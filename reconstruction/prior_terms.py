@@ -181,8 +181,8 @@ class EdgeGuidedTerm:
     def fourier_pieces(
         self, shape: tuple[int, int], channels: int
     ) -> list[tuple[np.ndarray, np.ndarray]]:
-        symbol = Laplacian((*shape, 1)).fourier_symbol()
-        return [(self.mean_weight * symbol, np.eye(channels))]
+        # the L2 gradient term's, scaled by the mean weight
+        return [(self.mean_weight * s, m) for s, m in _G2.fourier_pieces(shape, channels)]
 
     def quadratic(self) -> EdgeGuidedTerm:
         return self

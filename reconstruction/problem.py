@@ -171,7 +171,7 @@ class Problem:
 
     @property
     def data_curvature(self) -> float:
-        """Mean diagonal of 2AᵀA per latent value (dispersion aside).
+        """Mean diagonal of 2AᵀA per latent value (dispersion aside): ADMM's default ρ.
 
         With the colour matrix C and the Bayer channel fractions f = (¼, ½, ¼) this is
         ``2 Σ_c f_c ‖C_c‖² / n``.
