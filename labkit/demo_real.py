@@ -186,12 +186,33 @@ class RealInputs:
         """Masks of the 24 patch centres (:func:`patch_centres` of :attr:`labels`)."""
         return patch_centres(self.labels)
 
+    @cached_property
+    def reference_truth(self) -> np.ndarray:
+        """The multispectral image (rows, cols, bands) warped onto the spectral dispersion
+        model's reference geometry, where a reconstruction's bands lie: the per-pixel
+        spectral truth of the synthetic raw image (bilinear resampling)."""
+        from calibration.warp import correct_spectral
+
+        cube = self.synthesis.multispectral
+        return correct_spectral(
+            np.asarray(cube.cube, dtype=np.float64), cube.wavelengths_nm, self.models["spectral"]
+        )
+
     def score(self, result: Any) -> dict[str, float]:
         """A reconstruction's patch-centre MRAE and RMSE against the chart's ASD reflectances
-        (:func:`patch_spectral_errors`) and edge-strip RMSE R/G/B of its raw colour image
-        (§4.4.3, fractions of the raw mean, as ``labkit evaluate`` reports them)."""
+        (:func:`patch_spectral_errors`), edge-strip RMSE R/G/B of its raw colour image
+        (§4.4.3, fractions of the raw mean, as ``labkit evaluate`` reports them), and its
+        spectral RMSE in the patches' edge strips and centres against
+        :attr:`reference_truth` (:func:`reconstruction.spectral_strip_errors`, the 8-px
+        border left out).
+
+        Raises
+        ------
+        DataError
+            The reconstruction's bands are not the multispectral image's.
+        """
         from labkit.spectra import colorchecker_reflectances
-        from reconstruction import evaluate
+        from reconstruction import evaluate, spectral_strip_errors
 
         patch = patch_spectral_errors(
             result.spectral,
@@ -202,10 +223,25 @@ class RealInputs:
         raw = self.synthesis.raw
         evaluation = evaluate(raw.raw, {"x": result.raw_colour}, cfa=raw.cfa, labels=self.labels)
         edge = evaluation.as_dict()["methods"]["x"]["residual_aberration"]["edge"]["rmse"]
+        bands = np.asarray(self.synthesis.multispectral.wavelengths_nm, dtype=float)
+        wanted = np.asarray(result.wavelengths_nm, dtype=float)
+        index = np.abs(bands[None, :] - wanted[:, None]).argmin(axis=1)
+        if not np.allclose(bands[index], wanted, atol=1.0):
+            raise DataError(
+                f"the reconstruction's bands {wanted.tolist()} nm are not among the "
+                f"multispectral image's {bands.tolist()} nm; reconstruct at its bands"
+            )
+        keep = np.zeros(self.labels.shape, bool)
+        keep[8:-8, 8:-8] = True
+        split = spectral_strip_errors(
+            self.reference_truth[..., index], result.spectral, labels=self.labels, mask=keep
+        )
         return {
             "mrae": patch["mrae"],
             "rmse": patch["rmse"],
             **{f"edge_rmse_{c}": float(edge[c]) for c in "RGB"},
+            "spectral_rmse_edges": split.edge,
+            "spectral_rmse_centres": split.centre,
         }
 
 

@@ -49,9 +49,11 @@ from reconstruction.reconstruct import Reconstruction, reconstruct
 from reconstruction.residual_aberration import (
     PatchRegions,
     ResidualAberration,
+    SpectralStripErrors,
     ideal_image,
     patch_regions,
     residual_aberration,
+    spectral_strip_errors,
 )
 from reconstruction.weights import CRITERIA, WeightSelection, select_weights
 
@@ -74,6 +76,7 @@ __all__ = [
     "Score",
     "SolverOptions",
     "SpectralErrors",
+    "SpectralStripErrors",
     "WeightSelection",
     "baseline",
     "baseline_images",
@@ -90,4 +93,5 @@ __all__ = [
     "residual_aberration",
     "select_weights",
     "spectral_errors",
+    "spectral_strip_errors",
 ]

@@ -14,8 +14,8 @@ registration (4.9) removes the unknown exposure scale. Colour errors compare the
 image with the dispersion-free render.
 
 The main variants (:data:`labkit.bench.real_frames.MAIN_VARIANTS`: the default problem,
-σ = 0, the §6.3 reference with and without σ, no non-negativity, the thesis' L2 prior, VTV
-with cubic Φ) run on
+σ = 0, the §6.3 reference with and without σ, no non-negativity, the thesis' L2 prior,
+cubic Φ, VTV with cubic Φ) run on
 the simulated ColorChecker and on the real ColorChecker frames of the thesis' lab
 (:mod:`labkit.bench.real_frames`), tabulated and plotted side by side.
 

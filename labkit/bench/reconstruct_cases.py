@@ -122,9 +122,26 @@ def edge_errors(case: dict[str, Any], raw_colour: np.ndarray) -> dict[str, float
     return {f"edge_rmse_{c}": float(v) for c, v in zip("RGB", measure.edge.rmse, strict=True)}
 
 
+def strip_errors(case: dict[str, Any], result) -> dict[str, float]:
+    """Spectral RMSE in the ColorChecker's edge strips and centres, relative to the mean
+    truth of the patches (:func:`reconstruction.spectral_strip_errors`, 8-px border left
+    out as in :func:`errors`)."""
+    from reconstruction import spectral_strip_errors
+
+    truth = case["truth"](result.wavelengths_nm)
+    keep = np.zeros(truth.shape[:2], bool)
+    keep[8:-8, 8:-8] = True
+    keep &= np.all(np.isfinite(truth), axis=-1)
+    split = spectral_strip_errors(
+        np.where(keep[..., None], truth, 0.0), result.spectral, boxes=case["boxes"], mask=keep
+    )
+    return {"spectral_rmse_edges": split.edge, "spectral_rmse_centres": split.centre}
+
+
 def errors(case: dict[str, Any], result) -> dict[str, float]:
     """Spectral RMSE/MRAE/GOF (registered, 8-px border left out), colour RMSE per channel,
-    and on the ColorChecker the edge-strip RMSE per channel (:func:`edge_errors`)."""
+    and on the ColorChecker the edge-strip RMSE per channel (:func:`edge_errors`) and the
+    spectral RMSE in the strips and centres (:func:`strip_errors`)."""
     from reconstruction.metrics import colour_errors, spectral_errors
 
     inner = (slice(8, -8), slice(8, -8))
@@ -142,6 +159,7 @@ def errors(case: dict[str, Any], result) -> dict[str, float]:
         "spectral_gof": spectral.gof,
         **{f"colour_rmse_{c}": float(v) / peak for c, v in zip("RGB", colour.rmse, strict=True)},
         **(edge_errors(case, result.raw_colour) if "boxes" in case else {}),
+        **(strip_errors(case, result) if "boxes" in case else {}),
     }
 
 
