@@ -202,17 +202,20 @@ class RealInputs:
         """A reconstruction's patch-centre MRAE and RMSE against the chart's ASD reflectances
         (:func:`patch_spectral_errors`), edge-strip RMSE R/G/B of its raw colour image
         (§4.4.3, fractions of the raw mean, as ``labkit evaluate`` reports them), and its
-        spectral RMSE in the patches' edge strips and centres against
-        :attr:`reference_truth` (:func:`reconstruction.spectral_strip_errors`, the 8-px
-        border left out).
+        spectral RMSE per pixel against :attr:`reference_truth` over the chart (the patches
+        and the strip width around them, the 8-px border left out) and in the patches' edge
+        strips, centres and surround (:func:`reconstruction.spectral_strip_errors`).
 
         Raises
         ------
         DataError
             The reconstruction's bands are not the multispectral image's.
         """
+        from scipy import ndimage
+
         from labkit.spectra import colorchecker_reflectances
         from reconstruction import evaluate, spectral_strip_errors
+        from reconstruction.residual_aberration import STRIP_PX
 
         patch = patch_spectral_errors(
             result.spectral,
@@ -231,8 +234,10 @@ class RealInputs:
                 f"the reconstruction's bands {wanted.tolist()} nm are not among the "
                 f"multispectral image's {bands.tolist()} nm; reconstruct at its bands"
             )
-        keep = np.zeros(self.labels.shape, bool)
-        keep[8:-8, 8:-8] = True
+        # the chart: its patches and their surround (the rest of the frame holds the lab,
+        # whose multispectral truth is dark and noisy)
+        keep = ndimage.distance_transform_edt(self.labels == 0) <= STRIP_PX
+        keep[:8] = keep[-8:] = keep[:, :8] = keep[:, -8:] = False
         split = spectral_strip_errors(
             self.reference_truth[..., index], result.spectral, labels=self.labels, mask=keep
         )
@@ -240,8 +245,10 @@ class RealInputs:
             "mrae": patch["mrae"],
             "rmse": patch["rmse"],
             **{f"edge_rmse_{c}": float(edge[c]) for c in "RGB"},
-            "spectral_rmse_edges": split.edge,
-            "spectral_rmse_centres": split.centre,
+            "spectral_rmse": split.whole,
+            "spectral_rmse_strips": split.strips,
+            "spectral_rmse_centres": split.centres,
+            "spectral_rmse_surround": split.surround,
         }
 
 

@@ -239,21 +239,25 @@ def residual_aberration(
 
 @dataclass(frozen=True)
 class SpectralStripErrors:
-    """Result of :func:`spectral_strip_errors`: spectral RMSE in the edge strips, the
-    centres and all the patches, each relative to the mean true value over the patches.
+    """Result of :func:`spectral_strip_errors`: the spectral RMSE of an image split between
+    the patches' edge strips, their centres and the surround just outside them, each
+    relative to the mean true value of all evaluated pixels (so that, weighted by their
+    pixel shares, the regions' squares add up to the whole image's).
 
     Attributes
     ----------
-    edge, centre, patches : float
-        RMS error of every band of every pixel of the region, after registration, over
-        the mean true value of the patches (unitless).
+    strips, centres, surround, whole : float
+        RMS error of every band of every evaluated pixel of the region, after
+        registration, over the mean true value (unitless). `surround`: pixels outside
+        every patch within the strip width of one (a chart's frame and gaps).
     scale : tuple of float
         The per-band registration factors (4.9) applied to the estimate.
     """
 
-    edge: float
-    centre: float
-    patches: float
+    strips: float
+    centres: float
+    surround: float
+    whole: float
     scale: tuple[float, ...]
 
 
@@ -266,13 +270,13 @@ def spectral_strip_errors(
     strip_px: float = STRIP_PX,
     mask: np.ndarray | None = None,
 ) -> SpectralStripErrors:
-    """Spectral error of an image of a patch chart in the patches' edge strips and centres.
+    """Spectral error of an image of a patch chart in the edge strips, centres and surround.
 
     The spectral counterpart of :func:`residual_aberration` for images whose spectral
     truth is known (a simulation, or a multispectral image of the chart in the
-    reconstruction's geometry): a prior that smooths across edges, or a dispersion model
-    that misplaces a band, shows in the strips, the metamer problem (§6.3) in the centres.
-    The estimate is registered per band (4.9) over all patch pixels first.
+    reconstruction's geometry): a prior that smooths across edges shows in the strips and
+    in the surround (the dark frame between patches), the metamer problem (§6.3) in the
+    centres. The estimate is registered per band (4.9) over all evaluated pixels first.
 
     Parameters
     ----------
@@ -281,7 +285,7 @@ def spectral_strip_errors(
     boxes, labels
         The patches, as for :func:`patch_regions` (exactly one).
     strip_px : float
-        Edge strip width, px.
+        Width of the edge strips inside the patches and of the surround outside them, px.
     mask : ndarray (rows, cols) of bool, optional
         Pixels to evaluate (e.g. leaving out a border); default all. Only these need to
         be finite.
@@ -294,7 +298,7 @@ def spectral_strip_errors(
     ------
     DataError
         Shapes that differ, NaN/Inf in evaluated pixels, invalid patches, or no evaluated
-        pixel in the strips or the centres.
+        pixel in the strips, the centres or the surround.
     """
     truth = np.asarray(truth, dtype=np.float64)
     estimate = np.asarray(estimate, dtype=np.float64)
@@ -307,23 +311,31 @@ def spectral_strip_errors(
     if keep.shape != truth.shape[:2]:
         raise DataError(f"mask has shape {keep.shape}; the images are {truth.shape[:2]}")
     regions = patch_regions(truth.shape[:2], boxes=boxes, labels=labels, strip_px=strip_px)
-    edge, centre = regions.edge & keep, regions.centre & keep
-    if not edge.any() or not centre.any():
-        raise DataError("no evaluated pixel in the edge strips or in the centres; widen the mask")
-    inside = edge | centre
-    if not (np.all(np.isfinite(truth[inside])) and np.all(np.isfinite(estimate[inside]))):
+    outside = regions.labels == 0
+    distance = ndimage.distance_transform_edt(outside)
+    surround = outside & (distance <= regions.strip_px) & keep
+    strips, centres = regions.edge & keep, regions.centre & keep
+    if not (strips.any() and centres.any() and surround.any()):
+        raise DataError(
+            "no evaluated pixel in the edge strips, the centres or the surround; widen the mask"
+        )
+    if not (np.all(np.isfinite(truth[keep])) and np.all(np.isfinite(estimate[keep]))):
         raise DataError("NaN or Inf in the evaluated pixels; mask them out")
-    scale = registration_scale(truth[inside], estimate[inside])
-    level = float(np.mean(truth[inside]))
+    scale = registration_scale(truth[keep], estimate[keep])
+    level = float(np.mean(truth[keep]))
     if not level > 0:
-        raise DataError("the true image is not positive on the patches; nothing to compare")
+        raise DataError("the true image is not positive where evaluated; nothing to compare")
     squared = np.mean((estimate * scale - truth) ** 2, axis=-1)
 
     def relative(region: np.ndarray) -> float:
         return float(np.sqrt(np.mean(squared[region]))) / level
 
     return SpectralStripErrors(
-        relative(edge), relative(centre), relative(inside), tuple(float(v) for v in scale)
+        relative(strips),
+        relative(centres),
+        relative(surround),
+        relative(keep),
+        tuple(float(v) for v in scale),
     )
 
 

@@ -113,9 +113,12 @@ def comparison_table(real: list[Measurement], simulated: list[Measurement]) -> T
         return "/".join(f"{m.extra[f'edge_rmse_{c}']:.4f}" for c in "RGB")
 
     def strips(m: Measurement | None) -> str:
-        if m is None or "spectral_rmse_edges" not in m.extra:
+        if m is None or "spectral_rmse_strips" not in m.extra:
             return "—"
-        return f"{m.extra['spectral_rmse_edges']:.4f}/{m.extra['spectral_rmse_centres']:.4f}"
+        return "/".join(
+            f"{m.extra[f'spectral_rmse_{region}']:.4f}"
+            for region in ("strips", "centres", "surround")
+        )
 
     by_variant = {m.extra["variant"]: m for m in simulated}
     rows = []
@@ -128,6 +131,7 @@ def comparison_table(real: list[Measurement], simulated: list[Measurement]) -> T
                 f"{m.extra['mrae']:.4f}",
                 f"{m.extra['rmse']:.4f}",
                 triple(m),
+                f"{m.extra['spectral_rmse']:.4f}" if "spectral_rmse" in m.extra else "—",
                 strips(m),
                 "—" if sim is None else f"{sim.seconds:.1f}",
                 "—" if sim is None else f"{sim.extra['spectral_rmse_rel']:.4f}",
@@ -141,21 +145,25 @@ def comparison_table(real: list[Measurement], simulated: list[Measurement]) -> T
         "(synthetic raw image, sensor map as response), patch-centre MRAE and RMSE against "
         "the ASD reflectances. Simulated: the 344×408 ColorChecker, spectral RMSE (relative "
         "to the mean truth) and MRAE per pixel. Edge RMSE R/G/B: §4.4.3 edge strips of the "
-        "raw colour image. Spectral strips/centres: spectral RMSE per pixel in the patches' "
-        "12-px edge strips and in their centres (relative to the mean truth of the patches), "
-        "against the multispectral image (real) or the simulation's truth.",
+        "raw colour image. Real spectral RMSE: per pixel over the chart (its patches and "
+        "the 12 px around them) against the multispectral image moved into the "
+        "reconstruction's geometry. Spectral strips/centres/surround: the spectral RMSE in "
+        "the patches' 12-px edge strips, their centres, and the 12 px outside them (the "
+        "chart's frame), relative to the mean truth (real: of the chart; simulated: of the "
+        "image).",
         [
             "variant",
             "real s",
             "real MRAE",
             "real RMSE",
             "real edge R/G/B",
-            "real spectral strips/centres",
+            "real spectral RMSE (chart)",
+            "real spectral strips/centres/surround",
             "sim s",
             "sim RMSE",
             "sim MRAE",
             "sim edge R/G/B",
-            "sim spectral strips/centres",
+            "sim spectral strips/centres/surround",
         ],
         rows,
     )

@@ -123,9 +123,9 @@ def edge_errors(case: dict[str, Any], raw_colour: np.ndarray) -> dict[str, float
 
 
 def strip_errors(case: dict[str, Any], result) -> dict[str, float]:
-    """Spectral RMSE in the ColorChecker's edge strips and centres, relative to the mean
-    truth of the patches (:func:`reconstruction.spectral_strip_errors`, 8-px border left
-    out as in :func:`errors`)."""
+    """Spectral RMSE in the ColorChecker's edge strips, centres and surround, relative to
+    the mean truth (:func:`reconstruction.spectral_strip_errors`; 8-px border left out and
+    registered as in :func:`errors`, whose global RMSE it splits)."""
     from reconstruction import spectral_strip_errors
 
     truth = case["truth"](result.wavelengths_nm)
@@ -135,7 +135,11 @@ def strip_errors(case: dict[str, Any], result) -> dict[str, float]:
     split = spectral_strip_errors(
         np.where(keep[..., None], truth, 0.0), result.spectral, boxes=case["boxes"], mask=keep
     )
-    return {"spectral_rmse_edges": split.edge, "spectral_rmse_centres": split.centre}
+    return {
+        "spectral_rmse_strips": split.strips,
+        "spectral_rmse_centres": split.centres,
+        "spectral_rmse_surround": split.surround,
+    }
 
 
 def errors(case: dict[str, Any], result) -> dict[str, float]:
