@@ -149,8 +149,11 @@ class ReconstructOptions:
         image: lower spectral, colour and edge errors than σ = 0, weights the DMC
         determines well, and an optimum the default solve reaches within 1e-4. 0 is the
         thesis' problem, for narrow-band light (bandpass filters, lasers, LEDs), whose
-        spectra the term biases (measurements in :mod:`reconstruction.problem`). Spectral
-        latent only (default 0 for ``latent="colour"``).
+        spectra the term biases (measurements in :mod:`reconstruction.problem`): left to
+        the default, σ is 0 for an image whose mean colour no smooth spectrum gives
+        (:data:`~reconstruction.reconstruct.NARROW_BAND_MISFIT`; the choice is logged as
+        ``spectral_smoothness_chosen``). Spectral latent only (default 0 for
+        ``latent="colour"``).
     weights : str or sequence of float
         ``"auto:dmc"`` (default; the thesis' demosaicing criterion against bilinear
         demosaicing), ``"auto:dmc-menon"`` / ``"auto:dmc-malvar"`` (the same against a

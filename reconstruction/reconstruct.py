@@ -60,12 +60,14 @@ REFERENCE_SMOOTHING = 1e-2
 
 
 class NarrowBandWarning(UserWarning):
-    """The image's light looks narrow-band while the spectral smoothness term is on."""
+    """The image's light looks narrow-band while a spectral smoothness term was asked for
+    (left to the default, σ is 0 for such images instead)."""
 
 
 NARROW_BAND_MISFIT = 0.02
 """Misfit of (6.1)'s smooth fit to the image's mean colour above which the light is taken
-to be narrow-band, and a spectral smoothness σ > 0 draws a warning. On the simulated rig it
+to be narrow-band: the default spectral smoothness then gives way to σ = 0 (logged), and
+an explicit σ > 0 draws a warning. On the simulated rig it
 lies above the misfit of unfiltered light and below that of most of the 10 nm filters;
 the filters at the ends of the camera's response stay below it, because what they pass is
 mostly leaked broadband light (figures in the README, spectral smoothness)."""
@@ -289,6 +291,7 @@ def prepare_problem(
     colour_gain = 1.0 / float(space.colour_matrix().sum(axis=1).max())
     smoothness = o.smoothness
     notices = []
+    chosen = None
     if o.reference == "mean-colour" or smoothness > 0:
         # one fit of (6.1) serves both, on the colour matrix of spectra (before any scale)
         colour_mean = mean_colour(y, o.cfa)
@@ -296,12 +299,22 @@ def prepare_problem(
         if o.reference == "mean-colour":
             space = space.with_scale(reference_scale(fit))
         # a non-positive channel mean has no colour to judge
-        if smoothness > 0 and np.all(colour_mean > 0) and misfit > NARROW_BAND_MISFIT:
+        narrow = smoothness > 0 and np.all(colour_mean > 0) and misfit > NARROW_BAND_MISFIT
+        if narrow and o.spectral_smoothness is None:
+            # the default σ would bias these colours: the thesis' problem instead
+            chosen = (
+                f"0 instead of the default {smoothness:g}: the image's mean raw colour is "
+                f"{100 * misfit:.0f} % away from that of any smooth non-negative spectrum "
+                "(narrow-band light)"
+            )
+            o = replace(o, spectral_smoothness=0.0)
+            smoothness = 0.0
+        elif narrow:
             notices.append(
                 f"the image's mean raw colour is {100 * misfit:.0f} % away from that of any "
                 "smooth non-negative spectrum: narrow-band light? The spectral smoothness "
                 f"term (σ = {smoothness:g}) biases such colours; give spectral_smoothness=0 "
-                "(--spectral-smoothness 0) for the thesis' problem"
+                "(--spectral-smoothness 0) for the thesis' problem, or leave it to the default"
             )
             warnings.warn(notices[-1], NarrowBandWarning, stacklevel=4)
     log: dict = {
@@ -311,6 +324,7 @@ def prepare_problem(
         "prior": o.prior,
         "nonneg": o.nonneg,
         "spectral_smoothness": smoothness,
+        "spectral_smoothness_chosen": chosen,
         "exact": bool(o.exact),
         "direct": o.direct,
         "rtol": o.tolerance,

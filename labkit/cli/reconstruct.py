@@ -143,9 +143,10 @@ def register(commands: argparse._SubParsersAction) -> None:
         metavar="SIGMA",
         help="weight σ of the spectral roughness term, which picks the smoothest of the "
         "spectra the data and the prior cannot tell apart without pulling each patch's "
-        "mean colour (beyond the thesis), in normalised units; give 0 (the thesis' "
-        "problem) for narrow-band light (bandpass filters, lasers, LEDs), whose spectra it "
-        "biases (default 1e-3 with --latent spectral, 0 with --latent colour)",
+        "mean colour (beyond the thesis), in normalised units; 0 is the thesis' problem, "
+        "for narrow-band light (bandpass filters, lasers, LEDs), whose spectra it biases "
+        "(default 1e-3 with --latent spectral, 0 with --latent colour and for an image "
+        "whose mean colour no smooth spectrum gives, which is printed and logged)",
     )
     parser.add_argument(
         "--weights",
@@ -542,6 +543,8 @@ def _print_summary(
             f"warning: {unconverged} patch(es) stopped at the iteration limit before reaching "
             "--rtol"
         )
+    if log.get("spectral_smoothness_chosen"):
+        print(f"spectral smoothness: {log['spectral_smoothness_chosen']}")
     for notice in log["warnings"]:
         print(f"warning: {notice}")
     print(f"time: {seconds:.1f} s (weights {weights['seconds']:.1f} s, patches "

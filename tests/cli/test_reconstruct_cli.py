@@ -137,23 +137,39 @@ def test_flat_grey_with_rig_and_dispersion(
     log = json.loads((out / "log.json").read_text())
     assert log["patches"]["phi_skipped_flat"] + log["patches"]["phi_skipped_negligible"] == 6
     assert log["dispersion"]["variables"] == "xylambda"
-    assert log["spectral_smoothness"] == 1e-3  # the default with a spectral latent image
+    # no smooth spectrum has the colour (0.3, 0.5, 0.2) under the rig's response: the
+    # default spectral smoothness gives way to the thesis' problem, and the log says so
+    assert log["spectral_smoothness"] == 0.0
+    assert "away from that of any smooth" in log["spectral_smoothness_chosen"]
 
 
-def test_narrow_band_light_is_flagged(sim_rig_path: Path, tmp_path: Path, capsys) -> None:
+def test_narrow_band_light_gets_the_thesis_problem(
+    sim_rig_path: Path, tmp_path: Path, capsys
+) -> None:
     """A flat green mosaic like the ColorChecker's through the rig's 550 nm filter (its
-    smooth fit misses it by 19 % at these bands): one warning line that names the fix, and
-    the log."""
+    smooth fit misses it by 19 % at these bands): left to the default, the spectral
+    smoothness is 0, one line and the log say why; asked for explicitly, σ > 0 stays and
+    one warning line names the fix."""
     raw = _write_raw(tmp_path / "green.exr", np.broadcast_to([0.057, 1.0, 0.088], (*SHAPE, 3)))
-    out = tmp_path / "out"
-    args = ["reconstruct", str(raw), "--rig", str(sim_rig_path), "--bands", BANDS, "--quiet",
-            "--weights", "fixed:0.01", "--patch-px", "32", "--out", str(out)]  # fmt: skip
-    assert main(args) == 0
+    base = ["reconstruct", str(raw), "--rig", str(sim_rig_path), "--bands", BANDS, "--quiet",
+            "--weights", "fixed:0.01", "--patch-px", "32"]  # fmt: skip
+    assert main([*base, "--out", str(tmp_path / "default")]) == 0
+    captured = capsys.readouterr()
+    lines = [line for line in captured.out.splitlines() if "narrow-band light" in line]
+    assert len(lines) == 1 and lines[0].startswith("spectral smoothness: 0 instead of")
+    assert "warning" not in captured.out and "NarrowBandWarning" not in captured.err
+    log = json.loads((tmp_path / "default" / "log.json").read_text())
+    assert log["spectral_smoothness"] == 0.0 and log["warnings"] == []
+    assert "19 %" in log["spectral_smoothness_chosen"]
+
+    out = tmp_path / "asked"
+    assert main([*base, "--spectral-smoothness", "1e-3", "--out", str(out)]) == 0
     captured = capsys.readouterr()
     lines = [line for line in captured.out.splitlines() if "narrow-band light?" in line]
     assert len(lines) == 1 and lines[0].startswith("warning: ")
     assert "--spectral-smoothness 0" in lines[0] and "NarrowBandWarning" not in captured.err
     log = json.loads((out / "log.json").read_text())
+    assert log["spectral_smoothness"] == 1e-3 and log["spectral_smoothness_chosen"] is None
     assert len(log["warnings"]) == 1 and "19 %" in log["warnings"][0]
 
 

@@ -93,21 +93,41 @@ def test_flat_scene_is_reproduced_and_skipped() -> None:
     assert all(r["iterations"] <= 3 for r in result.log["patch_records"])
 
 
-def test_narrow_band_light_draws_a_warning_with_spectral_smoothness() -> None:
+def test_narrow_band_light_gets_the_thesis_problem_by_default() -> None:
     """A flat mosaic of the colour of one basis band (559 nm; its smooth non-negative fit
-    misses it by 10 %) warns, names the misfit and the fix, and logs it; the thesis' problem
-    (σ = 0) and a grey scene (misfit 1 %) do not."""
+    misses it by 10 %): left to the default, the spectral smoothness is 0 (the thesis'
+    problem, which keeps such colours), and the log says why; an explicit σ > 0 warns,
+    names the misfit and the fix, and logs it; a grey scene (misfit 1 %) keeps the default
+    σ without a word."""
     space = LatentSpace.spectral(RESPONSE_RGB)
     colour = space.colour_matrix()[:, 4]
     settings = {"cfa": "GBRG", "response": RESPONSE_RGB, "weights": "fixed:0.01"}
     narrow = grey_raw((32, 32), colour=colour / colour.max())
-    with pytest.warns(NarrowBandWarning, match=r"10 % away .* spectral_smoothness=0") as caught:
-        result = reconstruct(narrow, **settings)
-    assert len(caught) == 1 and result.log["warnings"] == [str(caught[0].message)]
     with warnings.catch_warnings():
         warnings.simplefilter("error", NarrowBandWarning)
-        assert reconstruct(narrow, spectral_smoothness=0.0, **settings).log["warnings"] == []
-        assert reconstruct(grey_raw((32, 32)), **settings).log["warnings"] == []
+        default = reconstruct(narrow, **settings)
+        thesis = reconstruct(narrow, spectral_smoothness=0.0, **settings)
+        grey = reconstruct(grey_raw((32, 32)), **settings)
+    assert default.log["spectral_smoothness"] == 0.0 and default.log["warnings"] == []
+    assert "10 % away" in default.log["spectral_smoothness_chosen"]
+    assert np.array_equal(default.spectral, thesis.spectral)
+    assert thesis.log["spectral_smoothness_chosen"] is None
+    assert (
+        grey.log["spectral_smoothness"] == 1e-3 and grey.log["spectral_smoothness_chosen"] is None
+    )
+    with pytest.warns(NarrowBandWarning, match=r"10 % away .* spectral_smoothness=0") as caught:
+        asked = reconstruct(narrow, spectral_smoothness=1e-3, **settings)
+    assert len(caught) == 1 and asked.log["warnings"] == [str(caught[0].message)]
+    assert asked.log["spectral_smoothness"] == 1e-3
+    # the thesis' problem keeps the band's colour (measured 0.1 % off); the smoothness term
+    # moves it (12.8 %)
+    truth = colour / colour.max()
+
+    def colour_error(result) -> float:
+        mean = result.raw_colour[8:-8, 8:-8].reshape(-1, 3).mean(axis=0)
+        return float(np.linalg.norm(mean - truth) / np.linalg.norm(truth))
+
+    assert colour_error(default) < 0.01 and colour_error(asked) > 0.05
 
 
 def test_spectral_smoothness_recovers_smooth_spectra_better() -> None:
