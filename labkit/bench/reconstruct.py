@@ -66,6 +66,7 @@ FULL_TARGET_S = 600.0
 FULL_MEMORY_MIB = 4096.0
 TIME_ERROR_PNG = "reconstruct_time_vs_error.png"
 REAL_TIME_ERROR_PNG = "reconstruct_real_vs_simulated.png"
+REAL_TIME_RMSE_PNG = "reconstruct_real_vs_simulated_rmse.png"
 SCALING_PNG = "reconstruct_scaling.png"
 
 
@@ -316,7 +317,7 @@ def _plots(
     per_size: list[Measurement],
     summary: Measurement,
 ) -> list[str | Plot | Table]:
-    """The stage's three plots, written into `out`."""
+    """The stage's four plots, written into `out`."""
     plot_time_vs_error(
         {"204×172 texture, weight fixed": [_point(m) for m in variant_results]},
         out / TIME_ERROR_PNG,
@@ -336,6 +337,20 @@ def _plots(
         title="labkit reconstruct: the main variants on real and simulated data",
         error_label="MRAE",
     )
+    plot_time_vs_error(
+        {
+            "real ColorChecker: chart, against the multispectral image": [
+                (m.seconds, m.extra["spectral_rmse"], m.extra["variant"]) for m in real_main
+            ],
+            "simulated ColorChecker: image, against the truth": [
+                (m.seconds, m.extra["spectral_rmse_rel"], m.extra["variant"])
+                for m in simulated_main
+            ],
+        },
+        out / REAL_TIME_RMSE_PNG,
+        title="labkit reconstruct: the main variants, per-pixel spectral error",
+        error_label="spectral RMSE / mean truth",
+    )
     plot_scaling(
         [m.extra["pixels"] for m in per_size],
         {
@@ -354,6 +369,10 @@ def _plots(
     return [
         Plot("Reconstruction: time against spectral error", TIME_ERROR_PNG),
         Plot("Main variants: time against MRAE, real and simulated", REAL_TIME_ERROR_PNG),
+        Plot(
+            "Main variants: time against per-pixel spectral RMSE, real and simulated",
+            REAL_TIME_RMSE_PNG,
+        ),
         Plot("Reconstruction: time against image size (log–log)", SCALING_PNG),
     ]
 

@@ -273,3 +273,25 @@ def test_stage_plots_from_cases(tmp_path: Path) -> None:
     plot2 = calibrate.time_error_plot(fits, tmp_path)
     assert plot.file == "hdr_time_vs_error.png" and plot2.file == "calibrate_time_vs_error.png"
     assert (tmp_path / plot.file).is_file() and (tmp_path / plot2.file).is_file()
+
+
+def test_reconstruct_stage_plots_real_and_simulated_errors(tmp_path: Path) -> None:
+    """The reconstruction stage's plots: time against error per knob, the main variants on
+    both kinds of data by MRAE and by per-pixel spectral RMSE, and the scaling sweep."""
+    from labkit.bench.harness import Plot
+    from labkit.bench.reconstruct import _plots
+
+    def row(name: str, seconds: float, **extra: float | str) -> Measurement:
+        return Measurement(name, seconds, [seconds], 1.0, extra=extra)
+
+    knobs = [row("204×172 texture, L2", 1.0, spectral_rmse_rel=0.23)]
+    real = [row("real, defaults", 3.0, variant="defaults", mrae=0.197, spectral_rmse=0.18)]
+    simulated = [
+        row("sim, defaults", 4.0, variant="defaults", spectral_mrae=0.12, spectral_rmse_rel=0.07)
+    ]
+    sizes = [row(f"{n}²", s, pixels=n * n, solve_s=0.8 * s) for n, s in ((256, 2.0), (512, 8.0))]
+    summary = row("scaling", 10.0, exponent=1.0, exponent_solve=1.0)
+    plots = _plots(tmp_path, knobs, real, simulated, sizes, summary)
+    assert len(plots) == 4 and all(isinstance(p, Plot) for p in plots)
+    for plot in plots:
+        assert (tmp_path / plot.file).read_bytes()[:4] == b"\x89PNG"
