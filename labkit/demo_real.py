@@ -198,13 +198,16 @@ class RealInputs:
             np.asarray(cube.cube, dtype=np.float64), cube.wavelengths_nm, self.models["spectral"]
         )
 
-    def score(self, result: Any) -> dict[str, float]:
-        """A reconstruction's patch-centre MRAE and RMSE against the chart's ASD reflectances
-        (:func:`patch_spectral_errors`), edge-strip RMSE R/G/B of its raw colour image
-        (§4.4.3, fractions of the raw mean, as ``labkit evaluate`` reports them), and its
-        spectral RMSE per pixel against :attr:`reference_truth` over the chart (the patches
-        and the strip width around them, the 8-px border left out) and in the patches' edge
-        strips, centres and surround (:func:`reconstruction.spectral_strip_errors`).
+    def pixel_errors(self, result: Any) -> dict[str, float]:
+        """A reconstruction's spectral RMSE per pixel against :attr:`reference_truth`: over
+        the chart (its patches and the strip width around them, the 8-px border left out)
+        and in the patches' edge strips, centres and surround
+        (:func:`reconstruction.spectral_strip_errors`; relative to the chart's mean truth).
+
+        Returns
+        -------
+        dict
+            ``chart``, ``strips``, ``centres``, ``surround``.
 
         Raises
         ------
@@ -213,19 +216,9 @@ class RealInputs:
         """
         from scipy import ndimage
 
-        from labkit.spectra import colorchecker_reflectances
-        from reconstruction import evaluate, spectral_strip_errors
+        from reconstruction import spectral_strip_errors
         from reconstruction.residual_aberration import STRIP_PX
 
-        patch = patch_spectral_errors(
-            result.spectral,
-            result.wavelengths_nm,
-            self.centres,
-            colorchecker_reflectances("measured"),
-        )
-        raw = self.synthesis.raw
-        evaluation = evaluate(raw.raw, {"x": result.raw_colour}, cfa=raw.cfa, labels=self.labels)
-        edge = evaluation.as_dict()["methods"]["x"]["residual_aberration"]["edge"]["rmse"]
         bands = np.asarray(self.synthesis.multispectral.wavelengths_nm, dtype=float)
         wanted = np.asarray(result.wavelengths_nm, dtype=float)
         index = np.abs(bands[None, :] - wanted[:, None]).argmin(axis=1)
@@ -242,13 +235,38 @@ class RealInputs:
             self.reference_truth[..., index], result.spectral, labels=self.labels, mask=keep
         )
         return {
+            "chart": split.whole,
+            "strips": split.strips,
+            "centres": split.centres,
+            "surround": split.surround,
+        }
+
+    def score(self, result: Any) -> dict[str, float]:
+        """A reconstruction's patch-centre MRAE and RMSE against the chart's ASD reflectances
+        (:func:`patch_spectral_errors`), edge-strip RMSE R/G/B of its raw colour image
+        (§4.4.3, fractions of the raw mean, as ``labkit evaluate`` reports them), and its
+        per-pixel spectral RMSE (:meth:`pixel_errors`: ``spectral_rmse`` over the chart,
+        ``spectral_rmse_strips``, ``…_centres``, ``…_surround``).
+        """
+        from labkit.spectra import colorchecker_reflectances
+        from reconstruction import evaluate
+
+        patch = patch_spectral_errors(
+            result.spectral,
+            result.wavelengths_nm,
+            self.centres,
+            colorchecker_reflectances("measured"),
+        )
+        raw = self.synthesis.raw
+        evaluation = evaluate(raw.raw, {"x": result.raw_colour}, cfa=raw.cfa, labels=self.labels)
+        edge = evaluation.as_dict()["methods"]["x"]["residual_aberration"]["edge"]["rmse"]
+        pixels = self.pixel_errors(result)
+        return {
             "mrae": patch["mrae"],
             "rmse": patch["rmse"],
             **{f"edge_rmse_{c}": float(edge[c]) for c in "RGB"},
-            "spectral_rmse": split.whole,
-            "spectral_rmse_strips": split.strips,
-            "spectral_rmse_centres": split.centres,
-            "spectral_rmse_surround": split.surround,
+            "spectral_rmse": pixels["chart"],
+            **{f"spectral_rmse_{k}": pixels[k] for k in ("strips", "centres", "surround")},
         }
 
 
@@ -564,6 +582,7 @@ def _evaluate(real: RealInputs, recons: dict[str, Any], out: Path) -> dict[str, 
             }
             for name, e in patch.items()
         },
+        "pixels": {name: real.pixel_errors(r["result"]) for name, r in recons.items()},
         "residual_aberration": evaluation.as_dict(),
     }
     return {"summary": summary, "evaluation": evaluation, "figures": figures, "patch": patch}
@@ -594,6 +613,8 @@ def _spectra_figure(folder, out, patch, recons, multispectral, reflectances) -> 
 
 
 def _write_report(report, results, hdr, sensor, models, recons, evaluation) -> None:
+    from reconstruction.residual_aberration import STRIP_PX
+
     times = results["seconds"]
     imported = results["import"]
     report.paragraph(
@@ -717,6 +738,21 @@ def _write_report(report, results, hdr, sensor, models, recons, evaluation) -> N
         ],
     )
     report.figures([(evaluation["figures"]["spectra"], "patch-centre spectra (registered)")])
+    report.heading("Per-pixel spectra against the multispectral image", 3)
+    report.paragraph(
+        "Spectral RMSE of every pixel against the multispectral image the synthetic raw image "
+        "is made from, moved into the reconstruction's geometry, each band scaled by least "
+        "squares (eq. 4.9), relative to the chart's mean: over the chart, in strips inside "
+        f"the patch edges ({STRIP_PX:g} px), in the patch centres, and in the frame just "
+        "outside the patches."
+    )
+    report.table(
+        ["reconstruction", "chart", "edge strips", "centres", "frame"],
+        [
+            [name, *(f"{e[k]:.4f}" for k in ("chart", "strips", "centres", "surround"))]
+            for name, e in results["evaluation"]["pixels"].items()
+        ],
+    )
     report.heading("Residual chromatic aberration", 3)
     report.paragraph(
         "Edge/centre RMSE: residual chromatic aberration in strips inside the patch edges and "
