@@ -350,4 +350,12 @@ def fit_exponent(sizes: Any, seconds: Any) -> float:
 
 
 def _fmt(value: Any) -> str:
-    return f"{value:.4g}" if isinstance(value, float) else str(value)
+    """A details cell's value: floats to 4 significant digits, also inside lists and
+    dictionaries (a case's nested figures, e.g. its per-patch cost)."""
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    if isinstance(value, dict):
+        return "(" + ", ".join(f"{k}={_fmt(v)}" for k, v in value.items()) + ")"
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_fmt(v) for v in value) + "]"
+    return str(value)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -173,6 +174,21 @@ def test_markdown_from_known_json() -> None:
     assert lines[table - 2 : table + 3] == ["Sizes:", "", "| image | s |", "|---|---|", "| a | 1 |"]
     assert lines[bullet + 1] == ""  # the bullet list ends before the image paragraph
     assert "- general" in lines
+
+
+def test_markdown_details_round_nested_figures() -> None:
+    """Floats in a case's details keep 4 significant digits inside lists and dictionaries
+    too (the per-patch cost of a reconstruction), instead of Python's full repr."""
+    case = Measurement(
+        "r",
+        1.0,
+        [1.0],
+        1.0,
+        extra={"cost": {"ms": 182.56082500010962, "n": 56}, "w": [0.01783236790167924]},
+    )
+    payload = {**KNOWN, "stages": {"reconstruct": [asdict(case)]}, "stage_notes": {}}
+    (row,) = [line for line in render_markdown(payload).splitlines() if line.startswith("| r |")]
+    assert row.endswith("| cost=(ms=182.6, n=56), w=[0.01783] |")
 
 
 def test_write_report_keeps_json_and_markdown_in_step(tmp_path: Path) -> None:
