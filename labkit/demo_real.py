@@ -214,10 +214,7 @@ class RealInputs:
         DataError
             The reconstruction's bands are not the multispectral image's.
         """
-        from scipy import ndimage
-
-        from reconstruction import spectral_strip_errors
-        from reconstruction.residual_aberration import STRIP_PX
+        from reconstruction import patch_regions, spectral_strip_errors
 
         bands = np.asarray(self.synthesis.multispectral.wavelengths_nm, dtype=float)
         wanted = np.asarray(result.wavelengths_nm, dtype=float)
@@ -229,7 +226,8 @@ class RealInputs:
             )
         # the chart: its patches and their surround (the rest of the frame holds the lab,
         # whose multispectral truth is dark and noisy)
-        keep = ndimage.distance_transform_edt(self.labels == 0) <= STRIP_PX
+        regions = patch_regions(self.labels.shape, labels=self.labels)
+        keep = (regions.labels > 0) | regions.surround
         keep[:8] = keep[-8:] = keep[:, :8] = keep[:, -8:] = False
         split = spectral_strip_errors(
             self.reference_truth[..., index], result.spectral, labels=self.labels, mask=keep

@@ -48,6 +48,7 @@ and centres (beyond the thesis).
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -96,6 +97,13 @@ class PatchRegions:
     edge: np.ndarray
     centre: np.ndarray
     strip_px: float
+
+    @cached_property
+    def surround(self) -> np.ndarray:
+        """Background pixels within `strip_px` of a patch (a chart's frame and gaps),
+        (rows, cols) bool."""
+        outside = self.labels == 0
+        return outside & (ndimage.distance_transform_edt(outside) <= self.strip_px)
 
 
 @dataclass(frozen=True, eq=False)
@@ -311,10 +319,8 @@ def spectral_strip_errors(
     if keep.shape != truth.shape[:2]:
         raise DataError(f"mask has shape {keep.shape}; the images are {truth.shape[:2]}")
     regions = patch_regions(truth.shape[:2], boxes=boxes, labels=labels, strip_px=strip_px)
-    outside = regions.labels == 0
-    distance = ndimage.distance_transform_edt(outside)
-    surround = outside & (distance <= regions.strip_px) & keep
     strips, centres = regions.edge & keep, regions.centre & keep
+    surround = regions.surround & keep
     if not (strips.any() and centres.any() and surround.any()):
         raise DataError(
             "no evaluated pixel in the edge strips, the centres or the surround; widen the mask"

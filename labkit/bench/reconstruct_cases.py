@@ -122,13 +122,17 @@ def edge_errors(case: dict[str, Any], raw_colour: np.ndarray) -> dict[str, float
     return {f"edge_rmse_{c}": float(v) for c, v in zip("RGB", measure.edge.rmse, strict=True)}
 
 
-def strip_errors(case: dict[str, Any], result) -> dict[str, float]:
+def strip_errors(
+    case: dict[str, Any], result, *, truth: np.ndarray | None = None
+) -> dict[str, float]:
     """Spectral RMSE in the ColorChecker's edge strips, centres and surround, relative to
     the mean truth (:func:`reconstruction.spectral_strip_errors`; 8-px border left out and
-    registered as in :func:`errors`, whose global RMSE it splits)."""
+    registered as in :func:`errors`, whose global RMSE it splits). `truth`: the case's
+    truth at the result's bands, if already rendered."""
     from reconstruction import spectral_strip_errors
 
-    truth = case["truth"](result.wavelengths_nm)
+    if truth is None:
+        truth = case["truth"](result.wavelengths_nm)
     keep = np.zeros(truth.shape[:2], bool)
     keep[8:-8, 8:-8] = True
     keep &= np.all(np.isfinite(truth), axis=-1)
@@ -145,11 +149,12 @@ def strip_errors(case: dict[str, Any], result) -> dict[str, float]:
 def errors(case: dict[str, Any], result) -> dict[str, float]:
     """Spectral RMSE/MRAE/GOF (registered, 8-px border left out), colour RMSE per channel,
     and on the ColorChecker the edge-strip RMSE per channel (:func:`edge_errors`) and the
-    spectral RMSE in the strips and centres (:func:`strip_errors`)."""
+    spectral RMSE in the strips, centres and surround (:func:`strip_errors`)."""
     from reconstruction.metrics import colour_errors, spectral_errors
 
     inner = (slice(8, -8), slice(8, -8))
-    truth = case["truth"](result.wavelengths_nm)[inner]
+    rendered = case["truth"](result.wavelengths_nm)
+    truth = rendered[inner]
     estimate = result.spectral[inner].astype(np.float64)
     valid = np.all(np.isfinite(truth), axis=-1)
     spectral = spectral_errors(
@@ -163,7 +168,7 @@ def errors(case: dict[str, Any], result) -> dict[str, float]:
         "spectral_gof": spectral.gof,
         **{f"colour_rmse_{c}": float(v) / peak for c, v in zip("RGB", colour.rmse, strict=True)},
         **(edge_errors(case, result.raw_colour) if "boxes" in case else {}),
-        **(strip_errors(case, result) if "boxes" in case else {}),
+        **(strip_errors(case, result, truth=rendered) if "boxes" in case else {}),
     }
 
 
