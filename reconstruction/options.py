@@ -25,6 +25,7 @@ from calibration.dispersion_model import DispersionModel, load_dispersion_model
 from labkit.cfa import check_layout
 from labkit.errors import ConfigError, DataError
 from labkit.spectra import Spectra
+from reconstruction.band_balance import BAND_BALANCE, balances
 from reconstruction.image_formation import LatentSpace
 from reconstruction.operators.basis import KERNELS
 from reconstruction.operators.dispersion import INTERPOLATIONS
@@ -154,6 +155,15 @@ class ReconstructOptions:
         (:data:`~reconstruction.reconstruct.NARROW_BAND_MISFIT`; the choice is logged as
         ``spectral_smoothness_chosen``). Spectral latent only (default 0 for
         ``latent="colour"``).
+    band_balance : float, optional
+        γ in [0, 1] of the L2 and EdgeL2 priors' band balance
+        (:mod:`reconstruction.band_balance`; beyond the thesis): band b's spatial gradient
+        is weighed by ``f_b ∝ (its share of the camera's response) ** γ``, so that a band
+        the camera barely senses is not smoothed over many more pixels than the others.
+        Default :data:`~reconstruction.band_balance.BAND_BALANCE` (0.5) for those priors
+        with spectral smoothness σ > 0, which ties a weakly sensed band to its neighbours;
+        0 (every band alike, the thesis) otherwise, the only value the other priors, σ = 0
+        and a colour latent image take.
     weights : str or sequence of float
         ``"auto:dmc"`` (default; the thesis' demosaicing criterion against bilinear
         demosaicing), ``"auto:dmc-menon"`` / ``"auto:dmc-malvar"`` (the same against a
@@ -218,6 +228,7 @@ class ReconstructOptions:
     prior: str = "EdgeL2"
     nonneg: bool = True
     spectral_smoothness: float | None = None
+    band_balance: float | None = None
     weights: str | Sequence[float] = "auto:dmc"
     latent: str = "spectral"
     reference: str | None = None
@@ -265,6 +276,7 @@ class ReconstructOptions:
                 "{option} applies to {latent} spectral (bands along λ); give 0, or leave it "
                 "out, with {latent} colour",
             )
+        self._check_band_balance()
         rtol = self.tolerance
         if not (isinstance(rtol, (int, float)) and 0 < rtol < 1):
             raise OptionError("rtol", f"{{option}} must be a number in (0, 1), got {rtol!r}")
@@ -295,6 +307,33 @@ class ReconstructOptions:
                 "flat_threshold",
                 f"{{option}} must be finite and ≥ 0 (or None: never skip), got "
                 f"{self.flat_threshold!r}",
+            )
+
+    def _check_band_balance(self) -> None:
+        gamma = self.balance
+        if not (math.isfinite(gamma) and 0 <= gamma <= 1):
+            raise OptionError(
+                "band_balance", f"{{option}} must be in [0, 1], got {self.band_balance!r}"
+            )
+        if gamma > 0 and self.latent != "spectral":
+            raise OptionError(
+                "band_balance",
+                "{option} applies to {latent} spectral (bands along λ); give 0, or leave it "
+                "out, with {latent} colour",
+            )
+        if gamma > 0 and self.smoothness == 0:
+            raise OptionError(
+                "band_balance",
+                "{option} needs spectral smoothness ({spectral_smoothness} > 0), which ties a "
+                "weakly sensed band to its neighbours; at {spectral_smoothness} 0 the weight "
+                "search picks a weight that leaves such bands noisy: give {option} 0, or "
+                "leave it out",
+            )
+        if gamma > 0 and not any(balances(t) for t in self.terms):
+            raise OptionError(
+                "band_balance",
+                f"{{option}} applies to the L2 and EdgeL2 priors; {self.prior} has no L2 "
+                "gradient term: give 0, or leave it out",
             )
 
     def _check_weights(self) -> None:
@@ -378,6 +417,18 @@ class ReconstructOptions:
             except (TypeError, ValueError):
                 return math.nan
         return SUGGESTED_SMOOTHNESS if self.latent == "spectral" else 0.0
+
+    @property
+    def balance(self) -> float:
+        """γ of the band balance in effect: :data:`~reconstruction.band_balance.BAND_BALANCE`
+        for an L2-gradient prior with σ > 0 unless given, else 0."""
+        if self.band_balance is not None:
+            try:
+                return float(self.band_balance)
+            except (TypeError, ValueError):
+                return math.nan
+        applies = self.smoothness > 0 and any(balances(t) for t in self.terms)
+        return BAND_BALANCE if applies else 0.0
 
     @property
     def tolerance(self) -> float:

@@ -74,18 +74,28 @@ class PriorTerm:
     With `guided` (the L2 gradient only) the penalty is ``‖√w ⊙ ∇xy I‖₂²`` with edge
     weights w of the problem's raw patch: :meth:`bind` makes the term of one patch. Unbound,
     the term stands for all weights 1 (plain L2).
+
+    With `band_factors` f (the L2 gradient only, guided or not) band b's gradient is
+    weighed by f_b: ``Σ_b f_b ‖∇xy I_b‖₂²`` (:mod:`reconstruction.band_balance`).
     """
 
     operator: Difference
     norm: Literal[1, 2]
     grouped: bool = False
     guided: bool = False
+    band_factors: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         if self.grouped and self.norm != 1:
             raise DataError("only an L1 term can be grouped (the mixed norm ‖·‖₂,₁)")
         if self.guided and (self.operator != "gradient" or self.norm != 2):
             raise DataError("only the L2 gradient term can be edge-guided")
+        if self.band_factors is not None:
+            if self.operator != "gradient" or self.norm != 2 or self.grouped:
+                raise DataError("only the L2 gradient term can be band-balanced")
+            factors = np.asarray(self.band_factors, dtype=np.float64)
+            if factors.ndim != 1 or not np.all(np.isfinite(factors)) or np.any(factors < 0):
+                raise DataError(f"band factors must be finite and ≥ 0, got {self.band_factors}")
 
     @property
     def label(self) -> str:
@@ -97,10 +107,12 @@ class PriorTerm:
         """The guided term of one patch, with its edge weights (rows, cols, 2)."""
         if not self.guided:
             raise DataError(f"the {self.label} term takes no edge weights")
-        return EdgeGuidedTerm(np.asarray(weights, dtype=np.float64))
+        return EdgeGuidedTerm(np.asarray(weights, dtype=np.float64), self.band_factors)
 
     def difference(self, shape: tuple[int, int, int]) -> LinearOperator:
         """D on images of `shape` (rows, cols, channels), periodic boundary."""
+        if self.band_factors is not None:
+            return WeightedGradient(shape, band_factors=_factors(self.band_factors, shape[2]))
         if self.operator == "gradient":
             return Gradient(shape)
         if self.operator == "spectral_gradient":
@@ -118,7 +130,10 @@ class PriorTerm:
         return laplacian**2 if self.operator == "laplacian" else laplacian
 
     def spectral_matrix(self, channels: int) -> np.ndarray:
-        """The channel factor (channels × channels) of DᵀD: I, or D_λᵀD_λ for ∇λ∇xy."""
+        """The channel factor (channels × channels) of DᵀD: I (diag(f) with band factors),
+        or D_λᵀD_λ for ∇λ∇xy."""
+        if self.band_factors is not None:
+            return np.diag(_factors(self.band_factors, channels))
         if self.operator not in ("spectral_gradient", "spectral"):
             return np.eye(channels)
         d = SpectralGradient((1, 1, channels)).spectral_matrix
@@ -154,6 +169,7 @@ class EdgeGuidedTerm:
     """
 
     weights: np.ndarray
+    band_factors: tuple[float, ...] | None = None
     operator: str = "gradient"
     norm: Literal[2] = 2
     grouped: bool = False
@@ -173,16 +189,20 @@ class EdgeGuidedTerm:
         return bool(np.all(self.weights == self.weights.flat[0]))
 
     def __repr__(self) -> str:  # what FFT solvers' caches key on: the mean alone enters
-        return f"EdgeGuidedTerm(mean_weight={self.mean_weight!r})"
+        return (
+            f"EdgeGuidedTerm(mean_weight={self.mean_weight!r}, band_factors={self.band_factors!r})"
+        )
 
     def difference(self, shape: tuple[int, int, int]) -> WeightedGradient:
-        return WeightedGradient(shape, self.weights)
+        factors = None if self.band_factors is None else _factors(self.band_factors, shape[2])
+        return WeightedGradient(shape, self.weights, factors)
 
     def fourier_pieces(
         self, shape: tuple[int, int], channels: int
     ) -> list[tuple[np.ndarray, np.ndarray]]:
-        # the L2 gradient term's, scaled by the mean weight
-        return [(self.mean_weight * s, m) for s, m in _G2.fourier_pieces(shape, channels)]
+        # the (band-balanced) L2 gradient term's, scaled by the mean weight
+        plain = PriorTerm("gradient", 2, band_factors=self.band_factors)
+        return [(self.mean_weight * s, m) for s, m in plain.fourier_pieces(shape, channels)]
 
     def quadratic(self) -> EdgeGuidedTerm:
         return self
@@ -221,6 +241,15 @@ class SmoothnessTerm:
 
     def value(self, d_image: np.ndarray) -> float:
         return float(np.sum(d_image**2))
+
+
+def _factors(band_factors: tuple[float, ...], channels: int) -> np.ndarray:
+    """Band factors as an array, checked against the image's channels."""
+    if len(band_factors) != channels:
+        raise DataError(
+            f"{len(band_factors)} band factors do not fit an image of {channels} channels"
+        )
+    return np.asarray(band_factors, dtype=np.float64)
 
 
 #: Any penalty a :class:`~reconstruction.problem.Problem` holds.

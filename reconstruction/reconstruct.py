@@ -32,6 +32,7 @@ from calibration.warp import correct_channels, correct_spectral
 from labkit.blas_threads import fixed_blas_threads
 from labkit.cfa import channel_index
 from labkit.errors import DataError
+from reconstruction.band_balance import balance_terms, band_factors
 from reconstruction.image_formation import LatentSpace, build_formation
 from reconstruction.operators import SpectralGradient
 from reconstruction.options import ReconstructOptions
@@ -43,6 +44,7 @@ from reconstruction.patches import (
     reconstruct_patches,
     texture,
 )
+from reconstruction.prior_terms import PriorTerm
 from reconstruction.problem import Problem
 from reconstruction.result import Reconstruction
 from reconstruction.solvers.admm import absolute_tolerance
@@ -239,6 +241,9 @@ class PreparedProblem:
         ADMM's absolute tolerance (Algorithm 9 on the whole image).
     log : dict
         The log so far (JSON-ready).
+    terms : tuple of PriorTerm
+        The prior's terms as the patches solve them: the L2 gradient terms with the band
+        factors of `space` (:mod:`reconstruction.band_balance`) when γ > 0.
     """
 
     options: ReconstructOptions
@@ -250,6 +255,7 @@ class PreparedProblem:
     patches: PatchOptions
     atol: float
     log: dict
+    terms: tuple[PriorTerm, ...]
 
 
 def prepare_problem(
@@ -307,7 +313,9 @@ def prepare_problem(
                 f"{100 * misfit:.0f} % away from that of any smooth non-negative spectrum "
                 "(narrow-band light)"
             )
-            o = replace(o, spectral_smoothness=0.0)
+            if o.balance > 0:
+                chosen += ", and no band balance (it needs σ > 0)"
+            o = replace(o, spectral_smoothness=0.0, band_balance=None)
             smoothness = 0.0
         elif narrow:
             notices.append(
@@ -317,6 +325,11 @@ def prepare_problem(
                 "(--spectral-smoothness 0) for the thesis' problem, or leave it to the default"
             )
             warnings.warn(notices[-1], NarrowBandWarning, stacklevel=4)
+    terms = o.terms
+    factors = None
+    if o.balance > 0:
+        factors = band_factors(space.colour_matrix(), exponent=o.balance)
+        terms = balance_terms(terms, factors)
     log: dict = {
         "warnings": notices,
         "latent": space.kind,
@@ -325,6 +338,8 @@ def prepare_problem(
         "nonneg": o.nonneg,
         "spectral_smoothness": smoothness,
         "spectral_smoothness_chosen": chosen,
+        "band_balance": o.balance,
+        "band_factors": None if factors is None else [float(v) for v in factors],
         "exact": bool(o.exact),
         "direct": o.direct,
         "rtol": o.tolerance,
@@ -356,6 +371,7 @@ def prepare_problem(
         patches=patches,
         atol=absolute_tolerance(y, o.tolerance),
         log=log,
+        terms=terms,
     )
 
 
@@ -397,8 +413,8 @@ def choose_weights(job: PreparedProblem, *, truth: np.ndarray | None = None) -> 
                 Problem(
                     formation,
                     job.y[r : r + size, c : c + size],
-                    o.terms,
-                    (1.0,) * len(o.terms),
+                    job.terms,
+                    (1.0,) * len(job.terms),
                     o.nonneg,
                     smoothness=o.smoothness,
                 )
@@ -451,7 +467,7 @@ def solve_patches(
     )
     t1 = time.perf_counter()
     solver = SolverOptions(
-        o.terms,
+        job.terms,
         tuple(weights),
         o.nonneg,
         o.tolerance,

@@ -26,11 +26,12 @@ from labkit.bench.harness import Measurement, Table, peak_rss_mib
 
 MAIN_VARIANTS: tuple[tuple[str, dict[str, Any]], ...] = (
     ("defaults", {}),
+    ("no band balance (every band alike)", {"band_balance": 0.0}),
     ("σ = 0 (thesis)", {"spectral_smoothness": 0.0}),
     ("§6.3 mean-colour reference", {"reference": "mean-colour"}),
     ("§6.3 mean-colour reference, σ = 0", {"reference": "mean-colour", "spectral_smoothness": 0.0}),
     ("no non-negativity", {"nonneg": False}),
-    ("L2 prior (the thesis')", {"prior": "L2"}),
+    ("L2 prior (the thesis')", {"prior": "L2", "band_balance": 0.0}),
     ("cubic Φ", {"interpolation": "cubic"}),
     (
         "VTV, cubic Φ, auto:dmc-menon, σ = 0",

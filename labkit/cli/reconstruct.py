@@ -38,6 +38,7 @@ CLI_NAMES = {
     "prior": "--prior",
     "nonneg": "--nonneg",
     "spectral_smoothness": "--spectral-smoothness",
+    "band_balance": "--band-balance",
     "weights": "--weights",
     "latent": "--latent",
     "reference": "--reference",
@@ -147,6 +148,16 @@ def register(commands: argparse._SubParsersAction) -> None:
         "for narrow-band light (bandpass filters, lasers, LEDs), whose spectra it biases "
         "(default 1e-3 with --latent spectral, 0 with --latent colour and for an image "
         "whose mean colour no smooth spectrum gives, which is printed and logged)",
+    )
+    parser.add_argument(
+        "--band-balance",
+        default=None,
+        metavar="GAMMA",
+        help="γ in [0, 1] of the L2 and EdgeL2 priors' band balance (beyond the thesis): each "
+        "band's spatial smoothing is weighed by its share of the camera's response to the "
+        "power γ, so that bands the camera barely senses keep their edges; 0 smooths every "
+        "band alike, as the thesis (default 0.5 for those priors with --latent spectral, "
+        "else 0)",
     )
     parser.add_argument(
         "--weights",
@@ -265,6 +276,9 @@ def _prepare(args: argparse.Namespace) -> _Job:
     smoothness = None
     if args.spectral_smoothness is not None:
         smoothness = _positive_float(args.spectral_smoothness, "--spectral-smoothness", zero=True)
+    balance = None
+    if args.band_balance is not None:
+        balance = _positive_float(args.band_balance, "--band-balance", zero=True)
     patch_px = _even_int(args.patch_px, "--patch-px", 8)
     pad_px = None if args.pad_px is None else _even_int(args.pad_px, "--pad-px", 2)
     _check_out(args.out)
@@ -327,6 +341,7 @@ def _prepare(args: argparse.Namespace) -> _Job:
             prior=args.prior,
             nonneg=args.nonneg,
             spectral_smoothness=smoothness,
+            band_balance=balance,
             weights=args.weights,
             latent=args.latent,
             reference=None if args.reference == "none" else args.reference,

@@ -191,25 +191,34 @@ class Gradient(_SpatialDifference):
 class WeightedGradient(LinearOperator):
     """Spatial gradient with a weight per pixel and direction: ``√w ⊙ ∇xy``.
 
-    ``out[y, x, c, d] = √w[y, x, d] · (∇xy u)[y, x, c, d]``, so that
-    ``‖out‖² = Σ w |∇xy u|²``: the edge-guided L2 prior's operator
-    (:mod:`reconstruction.edge_weights`). Every channel shares the weights. Periodic
-    boundary, as :class:`Gradient`; not circulant unless the weights are constant, so it
-    has no Fourier symbol (the FFT solvers take the weights' mean instead).
+    ``out[y, x, c, d] = √(w[y, x, d] · f[c]) · (∇xy u)[y, x, c, d]``, so that
+    ``‖out‖² = Σ w f |∇xy u|²``: the edge-guided L2 prior's operator
+    (:mod:`reconstruction.edge_weights`), and with band factors f the band-balanced L2
+    priors' (:mod:`reconstruction.band_balance`). Periodic boundary, as :class:`Gradient`;
+    not circulant unless the weights are constant, so it has no Fourier symbol (the FFT
+    solvers take the weights' mean instead).
 
     Parameters
     ----------
     shape : tuple of int
         Domain shape (rows, cols, k).
-    weights : ndarray (rows, cols, 2)
-        w ≥ 0 of each forward difference, ``[..., 0]`` along x, ``[..., 1]`` along y.
+    weights : ndarray (rows, cols, 2), optional
+        w ≥ 0 of each forward difference, ``[..., 0]`` along x, ``[..., 1]`` along y;
+        default 1.
+    band_factors : ndarray (k,), optional
+        f ≥ 0 of each channel; default 1 (every channel shares the weights).
     """
 
     name = "√w∇xy"
 
-    def __init__(self, shape: tuple[int, int, int], weights: np.ndarray) -> None:
+    def __init__(
+        self,
+        shape: tuple[int, int, int],
+        weights: np.ndarray | None = None,
+        band_factors: np.ndarray | None = None,
+    ) -> None:
         shape = _check_shape(shape, "WeightedGradient")
-        weights = np.asarray(weights, dtype=np.float64)
+        weights = np.ones((*shape[:2], 2)) if weights is None else np.asarray(weights, float)
         if weights.shape != (*shape[:2], 2):
             raise DataError(
                 f"WeightedGradient needs weights of shape {(*shape[:2], 2)} (rows, cols, "
@@ -217,10 +226,20 @@ class WeightedGradient(LinearOperator):
             )
         if not np.all(np.isfinite(weights)) or np.any(weights < 0):
             raise DataError("WeightedGradient's weights must be finite and ≥ 0")
+        factors = np.ones(shape[2]) if band_factors is None else np.asarray(band_factors, float)
+        if factors.shape != (shape[2],):
+            raise DataError(
+                f"WeightedGradient needs one band factor per channel ({shape[2]}), got shape "
+                f"{factors.shape}"
+            )
+        if not np.all(np.isfinite(factors)) or np.any(factors < 0):
+            raise DataError("WeightedGradient's band factors must be finite and ≥ 0")
         super().__init__(shape, (*shape, 2))
         self.weights = weights
+        self.band_factors = factors
         self._gradient = Gradient(shape)
-        self._root = np.sqrt(weights)[:, :, None, :]
+        root = np.sqrt(weights)[:, :, None, :]
+        self._root = root if band_factors is None else root * np.sqrt(factors)[:, None]
 
     def _forward(self, x: np.ndarray) -> np.ndarray:
         out = self._gradient.forward(x)

@@ -290,7 +290,7 @@ def test_help_documents_every_option(capsys) -> None:
     for option in ("--rig", "--response", "--bands", "--dispersion", "--prior", "--nonneg",
                    "--no-nonneg", "--weights", "--latent", "--reference", "--rtol", "--patch-px",
                    "--pad-px", "--scheduler", "--out", "--quiet", "--correction",
-                   "--exact", "--spectral-smoothness"):  # fmt: skip
+                   "--exact", "--spectral-smoothness", "--band-balance"):  # fmt: skip
         assert option in text
     for prior in PRIORS:
         assert prior in text, f"prior {prior} is missing from the --prior help"
@@ -337,6 +337,11 @@ def test_help_documents_every_option(capsys) -> None:
         ("grey", ["--response", "R", "--spectral-smoothness", "-1"], "expected a number ≥ 0"),
         ("grey", ["--response", "R", "--latent", "colour", "--spectral-smoothness", "1e-3"],
          "--spectral-smoothness applies to --latent spectral"),
+        ("grey", ["--response", "R", "--band-balance", "1.5"], r"--band-balance must be in [0, 1]"),
+        ("grey", ["--response", "R", "--prior", "VTV", "--band-balance", "0.5"],
+         "--band-balance applies to the L2 and EdgeL2 priors"),
+        ("grey", ["--response", "R", "--spectral-smoothness", "0", "--band-balance", "0.5"],
+         "--band-balance needs spectral smoothness (--spectral-smoothness > 0)"),
     ],
 )  # fmt: skip
 def test_bad_input_is_one_line_and_writes_nothing(

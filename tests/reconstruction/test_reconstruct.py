@@ -96,9 +96,9 @@ def test_flat_scene_is_reproduced_and_skipped() -> None:
 def test_narrow_band_light_gets_the_thesis_problem_by_default() -> None:
     """A flat mosaic of the colour of one basis band (559 nm; its smooth non-negative fit
     misses it by 10 %): left to the default, the spectral smoothness is 0 (the thesis'
-    problem, which keeps such colours), and the log says why; an explicit σ > 0 warns,
-    names the misfit and the fix, and logs it; a grey scene (misfit 1 %) keeps the default
-    σ without a word."""
+    problem, which keeps such colours, without band balance), and the log says why; an
+    explicit σ > 0 warns, names the misfit and the fix, and logs it; a grey scene (misfit
+    1 %) keeps the default σ without a word."""
     space = LatentSpace.spectral(RESPONSE_RGB)
     colour = space.colour_matrix()[:, 4]
     settings = {"cfa": "GBRG", "response": RESPONSE_RGB, "weights": "fixed:0.01"}
@@ -110,6 +110,9 @@ def test_narrow_band_light_gets_the_thesis_problem_by_default() -> None:
         grey = reconstruct(grey_raw((32, 32)), **settings)
     assert default.log["spectral_smoothness"] == 0.0 and default.log["warnings"] == []
     assert "10 % away" in default.log["spectral_smoothness_chosen"]
+    # band balance needs σ > 0: it goes with it
+    assert "no band balance" in default.log["spectral_smoothness_chosen"]
+    assert default.log["band_balance"] == 0.0 and grey.log["band_balance"] == 0.5
     assert np.array_equal(default.spectral, thesis.spectral)
     assert thesis.log["spectral_smoothness_chosen"] is None
     assert (
