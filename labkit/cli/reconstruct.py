@@ -525,7 +525,8 @@ def _print_summary(
     else:
         what = "raw colour (latent colour)"
     sign = "non-negative" if args.nonneg else "signed"
-    print(f"reconstructed {rows}×{cols} px → {what}; prior {args.prior}, {sign}")
+    balance = f" (band balance γ = {log['band_balance']:g})" if log.get("band_balance") else ""
+    print(f"reconstructed {rows}×{cols} px → {what}; prior {args.prior}{balance}, {sign}")
     weights = log["weights"]
     values = ", ".join(f"{v:.4g}" for v in weights["values"])
     if weights["criterion"] == "fixed":

@@ -158,9 +158,11 @@ def test_narrow_band_light_gets_the_thesis_problem(
     lines = [line for line in captured.out.splitlines() if "narrow-band light" in line]
     assert len(lines) == 1 and lines[0].startswith("spectral smoothness: 0 instead of")
     assert "warning" not in captured.out and "NarrowBandWarning" not in captured.err
+    assert "band balance" not in captured.out.splitlines()[0]  # it goes with σ
     log = json.loads((tmp_path / "default" / "log.json").read_text())
     assert log["spectral_smoothness"] == 0.0 and log["warnings"] == []
     assert "19 %" in log["spectral_smoothness_chosen"]
+    assert log["band_balance"] == 0.0 and log["band_factors"] is None
 
     out = tmp_path / "asked"
     assert main([*base, "--spectral-smoothness", "1e-3", "--out", str(out)]) == 0
@@ -168,8 +170,10 @@ def test_narrow_band_light_gets_the_thesis_problem(
     lines = [line for line in captured.out.splitlines() if "narrow-band light?" in line]
     assert len(lines) == 1 and lines[0].startswith("warning: ")
     assert "--spectral-smoothness 0" in lines[0] and "NarrowBandWarning" not in captured.err
+    assert "prior EdgeL2 (band balance γ = 0.5), non-negative" in captured.out
     log = json.loads((out / "log.json").read_text())
     assert log["spectral_smoothness"] == 1e-3 and log["spectral_smoothness_chosen"] is None
+    assert log["band_balance"] == 0.5 and len(log["band_factors"]) == len(BANDS.split(","))
     assert len(log["warnings"]) == 1 and "19 %" in log["warnings"][0]
 
 
