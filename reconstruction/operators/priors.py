@@ -218,7 +218,8 @@ class WeightedGradient(LinearOperator):
         band_factors: np.ndarray | None = None,
     ) -> None:
         shape = _check_shape(shape, "WeightedGradient")
-        weights = np.ones((*shape[:2], 2)) if weights is None else np.asarray(weights, float)
+        uniform = weights is None
+        weights = np.ones((*shape[:2], 2)) if uniform else np.asarray(weights, float)
         if weights.shape != (*shape[:2], 2):
             raise DataError(
                 f"WeightedGradient needs weights of shape {(*shape[:2], 2)} (rows, cols, "
@@ -238,8 +239,14 @@ class WeightedGradient(LinearOperator):
         self.weights = weights
         self.band_factors = factors
         self._gradient = Gradient(shape)
-        root = np.sqrt(weights)[:, :, None, :]
-        self._root = root if band_factors is None else root * np.sqrt(factors)[:, None]
+        # √w ⊙ √f, broadcast against (rows, cols, k, 2): without weights only the (k, 1)
+        # band factors, not a full-size array of ones, multiply every gradient
+        per_band = None if band_factors is None else np.sqrt(factors)[:, None]
+        if uniform:
+            self._root = np.ones((1, 1)) if per_band is None else per_band
+        else:
+            root = np.sqrt(weights)[:, :, None, :]
+            self._root = root if per_band is None else root * per_band
 
     def _forward(self, x: np.ndarray) -> np.ndarray:
         out = self._gradient.forward(x)
