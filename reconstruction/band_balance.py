@@ -37,8 +37,9 @@ from labkit.errors import DataError
 from reconstruction.prior_terms import PriorTerm
 
 BAND_BALANCE = 0.5
-"""γ of the L2 and EdgeL2 priors with σ > 0 unless given (0: every band smoothed alike, the
-thesis)."""
+"""γ of the EdgeL2 prior with σ > 0 unless given (0: every band smoothed alike, the thesis).
+The plain L2 prior takes it only when asked: on the real frames its DMC weight then falls
+to a quarter and the image gets worse (figures in the README)."""
 
 BAND_BALANCE_FLOOR = 0.05
 """Smallest relative data strength s_b / mean(s) a band's factor is computed from."""

@@ -160,10 +160,12 @@ class ReconstructOptions:
         (:mod:`reconstruction.band_balance`; beyond the thesis): band b's spatial gradient
         is weighed by ``f_b ∝ (its share of the camera's response) ** γ``, so that a band
         the camera barely senses is not smoothed over many more pixels than the others.
-        Default :data:`~reconstruction.band_balance.BAND_BALANCE` (0.5) for those priors
-        with spectral smoothness σ > 0, which ties a weakly sensed band to its neighbours;
-        0 (every band alike, the thesis) otherwise, the only value the other priors, σ = 0
-        and a colour latent image take.
+        Default :data:`~reconstruction.band_balance.BAND_BALANCE` (0.5) for EdgeL2 with
+        spectral smoothness σ > 0, which ties a weakly sensed band to its neighbours; 0
+        (every band alike, the thesis) otherwise, the only value the other priors, σ = 0
+        and a colour latent image take. The plain L2 prior takes it if asked for, but not
+        by default: its weight search on the real frames then picks a weight four times
+        smaller and a worse image (README, band balance).
     weights : str or sequence of float
         ``"auto:dmc"`` (default; the thesis' demosaicing criterion against bilinear
         demosaicing), ``"auto:dmc-menon"`` / ``"auto:dmc-malvar"`` (the same against a
@@ -421,13 +423,15 @@ class ReconstructOptions:
     @property
     def balance(self) -> float:
         """γ of the band balance in effect: :data:`~reconstruction.band_balance.BAND_BALANCE`
-        for an L2-gradient prior with σ > 0 unless given, else 0."""
+        for the EdgeL2 prior with σ > 0 unless given, else 0."""
         if self.band_balance is not None:
             try:
                 return float(self.band_balance)
             except (TypeError, ValueError):
                 return math.nan
-        applies = self.smoothness > 0 and any(balances(t) for t in self.terms)
+        # the guided prior only: the plain L2 prior's weight search on the real frames
+        # collapses with it (README, band balance)
+        applies = self.smoothness > 0 and any(t.guided for t in self.terms)
         return BAND_BALANCE if applies else 0.0
 
     @property

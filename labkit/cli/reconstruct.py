@@ -156,8 +156,8 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="γ in [0, 1] of the L2 and EdgeL2 priors' band balance (beyond the thesis): each "
         "band's spatial smoothing is weighed by its share of the camera's response to the "
         "power γ, so that bands the camera barely senses keep their edges; 0 smooths every "
-        "band alike, as the thesis (default 0.5 for those priors with --latent spectral, "
-        "else 0)",
+        "band alike, as the thesis (default 0.5 for EdgeL2 with spectral smoothness σ > 0, "
+        "else 0; refused at --spectral-smoothness 0)",
     )
     parser.add_argument(
         "--weights",

@@ -144,13 +144,16 @@ def test_band_balance_sharpens_the_weakly_sensed_band() -> None:
 
 
 def test_options_resolve_the_band_balance() -> None:
-    """γ = ½ by default for L2 and EdgeL2 with σ > 0, 0 for other priors, at σ = 0 and for
-    a colour latent image; an explicit γ the problem cannot take, or out of [0, 1], is
-    refused naming the option (by flag for the command line)."""
+    """γ = ½ by default for EdgeL2 with σ > 0, 0 for other priors (plain L2 included: its
+    weight search on the real frames collapses with it), at σ = 0 and for a colour latent
+    image; L2 takes it when asked; an explicit γ the problem cannot take, or out of [0, 1],
+    is refused naming the option (by flag for the command line)."""
     response = latent_space().response
     spectral = ReconstructOptions(cfa="GBRG", response=response)
     assert spectral.balance == BAND_BALANCE
-    assert ReconstructOptions(cfa="GBRG", response=response, prior="L2").balance == BAND_BALANCE
+    assert ReconstructOptions(cfa="GBRG", response=response, prior="L2").balance == 0.0
+    asked = ReconstructOptions(cfa="GBRG", response=response, prior="L2", band_balance=0.5)
+    assert asked.balance == 0.5
     assert ReconstructOptions(cfa="GBRG", response=response, prior="VTV").balance == 0.0
     assert ReconstructOptions(cfa="GBRG", latent="colour").balance == 0.0
     thesis = ReconstructOptions(cfa="GBRG", response=response, spectral_smoothness=0)
