@@ -178,6 +178,7 @@ def polish(
     cg_rtol: float | None = None,
     cg_max_iter: int = 200,
     max_rounds: int = MAX_ROUNDS,
+    correct_active: bool | None = None,
 ) -> tuple[np.ndarray, PolishReport]:
     """The exact non-negative optimum of `problem`, warm-started at `x_start` (≥ 0).
 
@@ -195,6 +196,13 @@ def polish(
         Each restricted solve's tolerance (default :data:`CG_RTOL`) and limit.
     max_rounds : int
         Newton rounds allowed.
+    correct_active : bool, optional
+        Restrict the preconditioner to the free values exactly (the capacitance
+        correction, a Cholesky factorisation of the active set's block of K̃⁻¹ per round
+        and a second FFT solve per CG step), or only mask it. Default: correct where K̃
+        is K itself (no Φ, so CG takes one or two steps); with Φ, K̃ is an
+        approximation anyway and the correction costs more than the CG steps it saves
+        (figures in the README, how it works).
 
     Returns
     -------
@@ -212,17 +220,18 @@ def polish(
     gradient = apply(x) - b
     impulses = None
     previous = None
+    correct_active = not solver.dispersive if correct_active is None else correct_active
     for _ in range(max_rounds):
         # ε-active set (Bertsekas' projected Newton): at zero and pushed outwards
         active = (x <= _ACTIVE_TOLERANCE * (float(x.max()) or 1.0)) & (gradient > 0)
         report.active = int(active.sum())
         if previous is not None and np.array_equal(active, previous):
             tolerance = cg_rtol
-        if impulses is None and report.active:
+        pinned = active if correct_active else np.zeros_like(active)
+        if impulses is None and correct_active and report.active:
             # consistent with the unrefined solves of the preconditioner (_Capacitance)
             impulses = solver.impulse_responses(refine=False)
-        pinned = active
-        if report.active > MAX_ACTIVE:  # correct for the most strongly held values only
+        if correct_active and report.active > MAX_ACTIVE:  # the most strongly held only
             order = np.argsort(np.where(active, gradient, -np.inf), axis=None)
             pinned = np.zeros(active.size, bool)
             pinned[order[-MAX_ACTIVE:]] = True

@@ -51,6 +51,11 @@ REFINE_RESIDUAL = 1e-12
 refinement; below it the inverse is already accurate to about that, and the step (a third
 of a solve) would change nothing that matters."""
 
+WOODBURY_RESIDUAL = REFINE_RESIDUAL
+"""Residual above which a block's Woodbury inverse is replaced by a direct one: at most
+the residual below which solves take no refinement step, so that the Woodbury identity
+never adds one (a direct inverse of a well-conditioned block: ≈ 1e-15)."""
+
 
 def mask_coefficients(cfa: str) -> np.ndarray:
     """Fourier coefficients a[c, s] (3, 4) of the channel masks of a Bayer layout."""
@@ -140,6 +145,96 @@ class _BlockCache:
 _BLOCKS = _BlockCache(BLOCK_CACHE_SIZE)
 
 
+def _woodbury_inverse(mosaic: np.ndarray, local_inverse: np.ndarray) -> np.ndarray | None:
+    """``(UᴴU + R)⁻¹`` per quadruple by the Woodbury identity, or None if it fails.
+
+    ``mosaic`` is U, (H or 1, 4, 4n); ``local_inverse`` R⁻¹ of the block-diagonal R,
+    (H, 4, n, n): the priors and β at the quadruple's 4 frequencies, the same for every
+    patch of a size (:func:`_local_inverse`). A 4 × 4 capacitance ``I + U R⁻¹ Uᴴ``
+    replaces the 4n × 4n inverse (a third of its time). Where R is ill-conditioned (the
+    mean at small β) the subtraction loses digits: :func:`_accurate_inverse` checks each
+    block.
+    """
+    nq, _, n, _ = local_inverse.shape
+    mosaic = np.broadcast_to(mosaic, (nq, 4, 4 * n)).reshape(nq, 4, 4, n)
+    # V = R⁻¹ Uᴴ, (H, 4 members, n, 4 raw frequencies)
+    v = np.matmul(local_inverse, np.conj(np.swapaxes(mosaic, 1, 3)).swapaxes(1, 2))
+    v = v.reshape(nq, 4 * n, 4)
+    capacitance = np.eye(4) + mosaic.reshape(nq, 4, 4 * n) @ v
+    try:
+        correction = np.linalg.inv(capacitance) @ np.conj(np.swapaxes(v, 1, 2))
+    except np.linalg.LinAlgError:
+        return None
+    inverse = -(v @ correction).astype(np.complex128, copy=False)
+    blocks = inverse.reshape(nq, 4, n, 4, n)
+    for s in range(4):
+        blocks[:, s, :, s, :] += local_inverse[:, s]
+    return inverse
+
+
+def _accurate_inverse(
+    matrix: np.ndarray, inverse: np.ndarray | None, probe: np.ndarray
+) -> tuple[np.ndarray | None, np.ndarray]:
+    """`inverse`, with the blocks it gets wrong (or all, if None) inverted directly.
+
+    Returns the inverse (None if the matrix is singular) and each block's relative residual
+    ``‖K K⁻¹ p − p‖ / ‖p‖`` on the probe p.
+    """
+
+    def residuals(k: np.ndarray, k_inverse: np.ndarray) -> np.ndarray:
+        error = np.linalg.norm(k @ (k_inverse @ probe) - probe, axis=(1, 2))
+        return error / float(np.linalg.norm(probe))
+
+    if inverse is None:
+        try:
+            inverse = np.linalg.inv(matrix)
+        except np.linalg.LinAlgError:
+            return None, np.full(matrix.shape[0], math.inf)
+        return inverse, residuals(matrix, inverse)
+    result = residuals(matrix, inverse)
+    redo = np.flatnonzero(~(result <= WOODBURY_RESIDUAL))
+    if redo.size:
+        try:
+            direct = np.linalg.inv(matrix[redo])
+        except np.linalg.LinAlgError:
+            return None, np.full(matrix.shape[0], math.inf)
+        inverse[redo] = direct
+        result[redo] = residuals(matrix[redo], direct)
+    return inverse, result
+
+
+_LOCAL = _BlockCache(4)
+"""The priors' blocks R (and R⁻¹ per β) of recent patch sizes (:func:`_local_inverse`)."""
+
+
+def _local_inverse(key: tuple[Any, ...], local: np.ndarray) -> np.ndarray | None:
+    """R⁻¹ of the (H, 4, n, n) blocks `local`, shared by the solvers with the same `key`
+    (patch size, priors and β; not the colour matrix, so the patches of an image with Φ
+    share it); None if a block is singular."""
+    cached = _LOCAL.get(key)
+    if cached is not None:
+        return cached[0]
+    try:
+        inverse = np.linalg.inv(local)
+    except np.linalg.LinAlgError:
+        return None
+    if not np.all(np.isfinite(inverse)):
+        return None
+    _LOCAL.put(key, inverse)
+    return inverse
+
+
+def _terms_digest(terms: Sequence[tuple[float, Term]], digest: Any) -> str:
+    """`digest` updated with what the prior matrices of `terms` depend on, as hex."""
+    for coefficient, term in terms:
+        if coefficient:
+            digest.update(f"{float(coefficient)!r} {type(term).__name__} {term!r}".encode())
+            extra = getattr(term, "colour", None)  # the smoothness term's colour matrix
+            if extra is not None:
+                digest.update(np.ascontiguousarray(extra, dtype=np.float64).tobytes())
+    return str(digest.hexdigest())
+
+
 def _matrix_key(
     shape: tuple[int, int],
     cfa: str,
@@ -149,13 +244,13 @@ def _matrix_key(
 ) -> tuple[Any, ...]:
     """What the matrix of a solver without dispersion depends on (identity aside)."""
     digest = hashlib.blake2b(np.ascontiguousarray(colour, dtype=np.float64).tobytes())
-    for coefficient, term in terms:
-        if coefficient:
-            digest.update(f"{float(coefficient)!r} {type(term).__name__} {term!r}".encode())
-            extra = getattr(term, "colour", None)  # the smoothness term's colour matrix
-            if extra is not None:
-                digest.update(np.ascontiguousarray(extra, dtype=np.float64).tobytes())
-    return (shape, check_layout(cfa), colour.shape, float(data_weight), digest.hexdigest())
+    return (
+        shape,
+        check_layout(cfa),
+        colour.shape,
+        float(data_weight),
+        _terms_digest(terms, digest),
+    )
 
 
 class FourierSolver:
@@ -175,6 +270,12 @@ class FourierSolver:
         c_t ≥ 0 and the term whose DᵀD enters.
     identity : float
         β ≥ 0 (ADMM penalty on x, and any ridge).
+
+    Attributes
+    ----------
+    dispersive : bool
+        Whether `colour` is per frequency (Φ by mean translations): K̃ then only
+        approximates the matrix of the problem with the true Φ.
 
     Notes
     -----
@@ -203,6 +304,7 @@ class FourierSolver:
             )
         colour = np.asarray(colour)
         self.shape = (rows, cols)
+        self.dispersive = colour.ndim != 2
         self.channels = n = colour.shape[-1]
         a = mask_coefficients(cfa)
         xor = np.array([[s ^ t for t in range(4)] for s in range(4)])
@@ -216,20 +318,30 @@ class FourierSolver:
         natural = to_quadruples(np.arange(rows * cols).reshape(rows, cols))
         self._gather = natural[self._kept].ravel()
         self._filled_at = natural.ravel()[filled_rows]
+        # the data term of a quadruple is U^H U with U (4 × 4n): its 4 raw frequencies from
+        # its 4n latent ones, U[u, (t, j)] = √α Σ_c a[c, u ⊕ t] C_c(k_t)[j] (the channel
+        # masks are disjoint, so the cross-channel products vanish)
         if colour.ndim == 2:
-            data = np.einsum("ci,cst,cj->sitj", colour, a_xor, colour)[None]
+            mosaic = np.einsum("cut,cj->utj", a_xor, colour)[None]
         else:
             quads = to_quadruples(colour)[self._kept]  # (H, 4, 3, n)
-            data = np.einsum("qsci,cst,qtcj->qsitj", quads.conj(), a_xor, quads, optimize=True)
-        self._data = data_weight * data  # (H or 1, 4, n, 4, n)
-        prior = np.zeros((rows, cols, n, n))
-        for coefficient, term in terms:
+            mosaic = np.einsum("cut,htcj->hutj", a_xor, quads, optimize=True)
+        self._mosaic = math.sqrt(data_weight) * mosaic.reshape(mosaic.shape[0], 4, 4 * n)
+        self._data = np.conj(np.swapaxes(self._mosaic, 1, 2)) @ self._mosaic  # (H or 1, 4n, 4n)
+        for coefficient, _ in terms:
             if coefficient < 0:
                 raise DataError(f"prior coefficient must be ≥ 0, got {coefficient}")
-            if coefficient:
-                for symbol, matrix in term.fourier_pieces(self.shape, n):
-                    prior += coefficient * symbol[..., None, None] * matrix
-        self._prior = to_quadruples(prior)[self._kept]  # (H, 4, n, n)
+        self._prior_key = ("prior", self.shape, n, _terms_digest(terms, hashlib.blake2b()))
+        cached = _LOCAL.get(self._prior_key)
+        if cached is None:
+            prior = np.zeros((rows, cols, n, n))
+            for coefficient, term in terms:
+                if coefficient:
+                    for symbol, matrix in term.fourier_pieces(self.shape, n):
+                        prior += coefficient * symbol[..., None, None] * matrix
+            cached = (to_quadruples(prior)[self._kept],)
+            _LOCAL.put(self._prior_key, *cached)
+        self._prior = cached[0]  # (H, 4, n, n), read-only
         self._key: tuple[Any, ...] | None = None
         if colour.ndim == 2:  # per-frequency colour (dispersion) makes every patch differ
             self._key = _matrix_key(self.shape, cfa, colour, data_weight, terms)
@@ -252,21 +364,19 @@ class FourierSolver:
             return
         n = self.channels
         nq = self._prior.shape[0]
-        matrix = np.broadcast_to(self._data, (nq, 4, n, 4, n)).astype(np.complex128)
+        local = self._prior + identity * np.eye(n)  # (H, 4, n, n): priors and β per member
+        matrix = np.broadcast_to(self._data, (nq, 4 * n, 4 * n)).astype(np.complex128)
+        matrix = matrix.reshape(nq, 4, n, 4, n)
         for s in range(4):
-            matrix[:, s, :, s, :] += self._prior[:, s] + identity * np.eye(n)
+            matrix[:, s, :, s, :] += local[:, s]
         self._matrix = matrix.reshape(nq, 4 * n, 4 * n)
-        inverse: np.ndarray | None
-        try:
-            inverse = np.linalg.inv(self._matrix)
-        except np.linalg.LinAlgError:
-            inverse = None
         # a (numerically) singular block inverts to garbage without an error: check the
         # inverse on one random vector per block (O(n²) per block, the inversion is O(n³))
         probe = np.random.default_rng(0).standard_normal((1, 4 * n, 1))
-        if inverse is not None:
-            residual = self._matrix @ (inverse @ probe) - probe
-            worst = float(np.max(np.linalg.norm(residual, axis=1))) / float(np.linalg.norm(probe))
+        local_inverse = _local_inverse((*self._prior_key, float(identity)), local)
+        inverse = None if local_inverse is None else _woodbury_inverse(self._mosaic, local_inverse)
+        inverse, residuals = _accurate_inverse(self._matrix, inverse, probe)
+        worst = float(np.max(residuals)) if inverse is not None else math.inf
         if inverse is None or not worst <= SINGULAR_RESIDUAL:
             raise DataError(
                 "the quadratic step's matrix is singular: with identity coefficient "
