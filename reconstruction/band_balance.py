@@ -45,11 +45,6 @@ BAND_BALANCE_FLOOR = 0.05
 """Smallest relative data strength s_b / mean(s) a band's factor is computed from."""
 
 
-def balances(term: PriorTerm) -> bool:
-    """Whether band balance applies to `term`: the quadratic spatial gradient (L2, EdgeL2)."""
-    return term.operator == "gradient" and term.norm == 2 and not term.grouped
-
-
 def band_factors(
     colour_matrix: np.ndarray, *, exponent: float = BAND_BALANCE, floor: float = BAND_BALANCE_FLOOR
 ) -> np.ndarray:
@@ -84,13 +79,14 @@ def band_factors(
 
 
 def balance_terms(terms: Sequence[PriorTerm], factors: np.ndarray) -> tuple[PriorTerm, ...]:
-    """`terms` with `factors` on those band balance applies to (:func:`balances`); all-one
-    factors leave the terms as they are."""
+    """`terms` with `factors` on those band balance applies to
+    (:attr:`~reconstruction.prior_terms.PriorTerm.balanceable`); all-one factors leave the
+    terms as they are."""
     factors = np.asarray(factors, dtype=np.float64)
     if np.all(factors == 1.0):
         return tuple(terms)
     values = tuple(float(v) for v in factors)
-    return tuple(replace(t, band_factors=values) if balances(t) else t for t in terms)
+    return tuple(replace(t, band_factors=values) if t.balanceable else t for t in terms)
 
 
-__all__ = ["BAND_BALANCE", "BAND_BALANCE_FLOOR", "balance_terms", "balances", "band_factors"]
+__all__ = ["BAND_BALANCE", "BAND_BALANCE_FLOOR", "balance_terms", "band_factors"]

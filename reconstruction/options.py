@@ -25,7 +25,7 @@ from calibration.dispersion_model import DispersionModel, load_dispersion_model
 from labkit.cfa import check_layout
 from labkit.errors import ConfigError, DataError
 from labkit.spectra import Spectra
-from reconstruction.band_balance import BAND_BALANCE, balances
+from reconstruction.band_balance import BAND_BALANCE
 from reconstruction.image_formation import LatentSpace
 from reconstruction.operators.basis import KERNELS
 from reconstruction.operators.dispersion import INTERPOLATIONS
@@ -331,7 +331,7 @@ class ReconstructOptions:
                 "search picks a weight that leaves such bands noisy: give {option} 0, or "
                 "leave it out",
             )
-        if gamma > 0 and not any(balances(t) for t in self.terms):
+        if gamma > 0 and not any(t.balanceable for t in self.terms):
             raise OptionError(
                 "band_balance",
                 f"{{option}} applies to the L2 and EdgeL2 priors; {self.prior} has no L2 "

@@ -91,11 +91,17 @@ class PriorTerm:
         if self.guided and (self.operator != "gradient" or self.norm != 2):
             raise DataError("only the L2 gradient term can be edge-guided")
         if self.band_factors is not None:
-            if self.operator != "gradient" or self.norm != 2 or self.grouped:
+            if not self.balanceable:
                 raise DataError("only the L2 gradient term can be band-balanced")
             factors = np.asarray(self.band_factors, dtype=np.float64)
             if factors.ndim != 1 or not np.all(np.isfinite(factors)) or np.any(factors < 0):
                 raise DataError(f"band factors must be finite and ≥ 0, got {self.band_factors}")
+
+    @property
+    def balanceable(self) -> bool:
+        """Whether band factors apply (:mod:`reconstruction.band_balance`): the quadratic
+        spatial gradient (L2, EdgeL2)."""
+        return self.operator == "gradient" and self.norm == 2 and not self.grouped
 
     @property
     def label(self) -> str:

@@ -227,15 +227,16 @@ def polish(
         report.active = int(active.sum())
         if previous is not None and np.array_equal(active, previous):
             tolerance = cg_rtol
-        pinned = active if correct_active else np.zeros_like(active)
-        if impulses is None and correct_active and report.active:
-            # consistent with the unrefined solves of the preconditioner (_Capacitance)
-            impulses = solver.impulse_responses(refine=False)
-        if correct_active and report.active > MAX_ACTIVE:  # the most strongly held only
-            order = np.argsort(np.where(active, gradient, -np.inf), axis=None)
-            pinned = np.zeros(active.size, bool)
-            pinned[order[-MAX_ACTIVE:]] = True
-            pinned = pinned.reshape(active.shape)
+        pinned = np.zeros_like(active)  # masked only, unless corrected for
+        if correct_active and report.active:
+            if impulses is None:
+                # consistent with the unrefined solves of the preconditioner (_Capacitance)
+                impulses = solver.impulse_responses(refine=False)
+            if report.active <= MAX_ACTIVE:
+                pinned = active
+            else:  # correct for the most strongly held values only
+                order = np.argsort(np.where(active, gradient, -np.inf), axis=None)
+                pinned.ravel()[order[-MAX_ACTIVE:]] = True
         try:
             precondition = _Capacitance(solver, impulses, pinned, active)
         except (np.linalg.LinAlgError, ValueError):

@@ -185,13 +185,10 @@ def _accurate_inverse(
         error = np.linalg.norm(k @ (k_inverse @ probe) - probe, axis=(1, 2))
         return error / float(np.linalg.norm(probe))
 
-    if inverse is None:
-        try:
-            inverse = np.linalg.inv(matrix)
-        except np.linalg.LinAlgError:
-            return None, np.full(matrix.shape[0], math.inf)
-        return inverse, residuals(matrix, inverse)
-    result = residuals(matrix, inverse)
+    if inverse is None:  # every block directly
+        inverse, result = np.empty_like(matrix), np.full(matrix.shape[0], math.inf)
+    else:
+        result = residuals(matrix, inverse)
     redo = np.flatnonzero(~(result <= WOODBURY_RESIDUAL))
     if redo.size:
         try:
@@ -224,15 +221,16 @@ def _local_inverse(key: tuple[Any, ...], local: np.ndarray) -> np.ndarray | None
     return inverse
 
 
-def _terms_digest(terms: Sequence[tuple[float, Term]], digest: Any) -> str:
-    """`digest` updated with what the prior matrices of `terms` depend on, as hex."""
+def _terms_digest(terms: Sequence[tuple[float, Term]]) -> str:
+    """Hex digest of what the prior matrices of `terms` depend on."""
+    digest = hashlib.blake2b()
     for coefficient, term in terms:
         if coefficient:
             digest.update(f"{float(coefficient)!r} {type(term).__name__} {term!r}".encode())
             extra = getattr(term, "colour", None)  # the smoothness term's colour matrix
             if extra is not None:
                 digest.update(np.ascontiguousarray(extra, dtype=np.float64).tobytes())
-    return str(digest.hexdigest())
+    return digest.hexdigest()
 
 
 def _matrix_key(
@@ -240,16 +238,18 @@ def _matrix_key(
     cfa: str,
     colour: np.ndarray,
     data_weight: float,
-    terms: Sequence[tuple[float, Term]],
+    terms_digest: str,
 ) -> tuple[Any, ...]:
-    """What the matrix of a solver without dispersion depends on (identity aside)."""
-    digest = hashlib.blake2b(np.ascontiguousarray(colour, dtype=np.float64).tobytes())
+    """What the matrix of a solver without dispersion depends on (identity aside);
+    `terms_digest` is :func:`_terms_digest` of its prior terms."""
+    colour_digest = hashlib.blake2b(np.ascontiguousarray(colour, dtype=np.float64).tobytes())
     return (
         shape,
         check_layout(cfa),
         colour.shape,
         float(data_weight),
-        _terms_digest(terms, digest),
+        colour_digest.hexdigest(),
+        terms_digest,
     )
 
 
@@ -331,7 +331,8 @@ class FourierSolver:
         for coefficient, _ in terms:
             if coefficient < 0:
                 raise DataError(f"prior coefficient must be ≥ 0, got {coefficient}")
-        self._prior_key = ("prior", self.shape, n, _terms_digest(terms, hashlib.blake2b()))
+        terms_digest = _terms_digest(terms)
+        self._prior_key = ("prior", self.shape, n, terms_digest)
         cached = _LOCAL.get(self._prior_key)
         if cached is None:
             prior = np.zeros((rows, cols, n, n))
@@ -344,7 +345,7 @@ class FourierSolver:
         self._prior = cached[0]  # (H, 4, n, n), read-only
         self._key: tuple[Any, ...] | None = None
         if colour.ndim == 2:  # per-frequency colour (dispersion) makes every patch differ
-            self._key = _matrix_key(self.shape, cfa, colour, data_weight, terms)
+            self._key = _matrix_key(self.shape, cfa, colour, data_weight, terms_digest)
         self.identity = math.nan  # none yet: set_identity inverts
         self._inverse32: np.ndarray | None = None  # made on the first solve_single
         self.set_identity(identity)
