@@ -13,6 +13,7 @@ from labkit.cli.reconstruct import CLI_NAMES
 from labkit.errors import ConfigError, DataError
 from labkit.spectra import camera_response
 from reconstruction import OptionError, ReconstructOptions, reconstruct
+from reconstruction.problem import SUGGESTED_SMOOTHNESS
 
 RESPONSE_RGB = camera_response(RESPONSE)
 BASE = {"cfa": "GBRG", "response": RESPONSE_RGB}
@@ -38,7 +39,7 @@ def test_options_object_runs_the_same_job_as_keywords() -> None:
 
 def test_defaults_in_effect() -> None:
     spectral = ReconstructOptions(**BASE)
-    assert spectral.smoothness == 1e-3 and spectral.tolerance == 1e-5
+    assert spectral.smoothness == SUGGESTED_SMOOTHNESS and spectral.tolerance == 1e-5
     assert spectral.direct and spectral.exact_weights and spectral.criterion == "dmc"
     colour = ReconstructOptions(cfa="GBRG", latent="colour")
     assert colour.smoothness == 0.0 and colour.tolerance == 1e-4 and not colour.direct

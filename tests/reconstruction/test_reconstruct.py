@@ -16,6 +16,7 @@ from labkit.cfa import mosaic
 from labkit.errors import DataError
 from labkit.spectra import camera_response
 from reconstruction.image_formation import LatentSpace, build_formation
+from reconstruction.problem import SUGGESTED_SMOOTHNESS
 from reconstruction.reconstruct import NarrowBandWarning, reconstruct
 
 RESPONSE_RGB = camera_response(RESPONSE)
@@ -87,7 +88,8 @@ def test_flat_scene_is_reproduced_and_skipped() -> None:
     )
     assert result.spectral.min() >= 0
     summary = result.log["patches"]
-    assert result.log["rtol"] == 1e-5 and result.log["spectral_smoothness"] == 1e-3  # defaults
+    assert result.log["rtol"] == 1e-5  # the defaults
+    assert result.log["spectral_smoothness"] == SUGGESTED_SMOOTHNESS
     assert summary["count"] == 6
     assert summary["phi_skipped_flat"] == 6
     assert all(r["iterations"] <= 3 for r in result.log["patch_records"])
@@ -116,7 +118,8 @@ def test_narrow_band_light_gets_the_thesis_problem_by_default() -> None:
     assert np.array_equal(default.spectral, thesis.spectral)
     assert thesis.log["spectral_smoothness_chosen"] is None
     assert (
-        grey.log["spectral_smoothness"] == 1e-3 and grey.log["spectral_smoothness_chosen"] is None
+        grey.log["spectral_smoothness"] == SUGGESTED_SMOOTHNESS
+        and grey.log["spectral_smoothness_chosen"] is None
     )
     with pytest.warns(NarrowBandWarning, match=r"10 % away .* spectral_smoothness=0") as caught:
         asked = reconstruct(narrow, spectral_smoothness=1e-3, **settings)
