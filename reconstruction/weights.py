@@ -44,11 +44,10 @@ Algorithm 3's two per round. So does a single weight whose solves start from the
 initial estimate (L1-type and VTV terms, below): each weight's loose solve is then a
 function of that weight alone, not of the search's order, and Brent's local search finds
 the value Algorithm 3's grid finds, or one a little above it, in fewer than half the
-solves (figures in the README, weight selection). Brent's method is local, so a walk in
-half-decade steps from w = 1e-5 first brackets the nearest minimum: started over the whole
-range [ε, 1e10], Brent's method could stop on the plateau of tiny weights, where the data
-alone fix the image and the criterion barely changes (it did on the real frames at
-σ = 5e-3: w = 1.3e-6, MRAE 0.51 instead of 0.20). At σ = 0 the
+solves (figures in the README, weight selection). Brent's method is local, so a walk
+first brackets the minimum nearest :data:`SCAN_START` (:func:`_brent`): over the whole
+range [ε, 1e10] it could stop on the plateau of tiny weights, where the data alone fix the
+image and the criterion barely changes (figures in the README, weight selection). At σ = 0 the
 problem's optimum is not the image ADMM's early stop returns, and the criterion scored on
 either (the optimum, or the early stop at the reconstruction's own tolerance) drifts to
 tiny weights (the DMC's failure mode, §3.6), so the thesis' loose search stays there
