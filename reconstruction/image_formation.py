@@ -286,7 +286,7 @@ class ImageFormation(LinearOperator):
             weights.append(matrix.data)
             columns.append(3 * j + channel[r])
         rows_all, cols_all = np.concatenate(rows), np.concatenate(cols)
-        pairs, which = np.unique(rows_all * npx + cols_all, return_inverse=True)
+        pairs, which = _distinct_pairs(rows_all, cols_all, self.domain_shape[1], npx)
         # per distinct (raw pixel, source pixel): Σ_j w_j C_j[channel, :]
         gather = sp.csr_matrix(
             (np.concatenate(weights), (which, np.concatenate(columns))),
@@ -394,6 +394,37 @@ def _translation_symbol(
         return sum(w * phase ** (whole + o) for o, w in zip(offsets, weights, strict=True))
 
     return axis(dy, rows)[:, None] * axis(dx, cols)[None, :]
+
+
+def _distinct_pairs(
+    rows: np.ndarray, sources: np.ndarray, cols: int, npx: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(rows * npx + sources, return_inverse=True)`` for sampling stencils.
+
+    Every source pixel lies within a few pixels of its raw pixel, so each pair is keyed by
+    the raw pixel and the source's offset in a small window, and a table over those keys
+    finds the distinct pairs and their ranks in linear time instead of sorting (the same
+    pairs, in the same order). Stencils that reach far (a periodic boundary wraps them
+    round) keep the sort.
+    """
+    # the source's offset as (rows, columns), the columns within half the patch's width
+    # (a product by 1/cols rounds the same as integer division, at a fraction of its cost)
+    offset = sources - rows
+    dy = np.rint(offset * (1.0 / cols)).astype(np.int64)
+    dx = offset - dy * cols
+    reach = int(max(np.abs(dy).max(initial=0), np.abs(dx).max(initial=0)))
+    width = 2 * reach + 1
+    if npx * width * width > 4 * rows.size:
+        return np.unique(rows * npx + sources, return_inverse=True)
+    keys = (rows * width + dy + reach) * width + dx + reach
+    seen = np.zeros(npx * width * width, dtype=bool)
+    seen[keys] = True
+    rank = np.cumsum(seen, dtype=np.int64) - 1
+    distinct = np.flatnonzero(seen)
+    offsets = distinct % (width * width)
+    raw = distinct // (width * width)
+    source = raw + (offsets // width - reach) * cols + (offsets % width - reach)
+    return raw * npx + source, rank[keys]
 
 
 def _own_bands(colour_matrices: np.ndarray) -> np.ndarray | None:

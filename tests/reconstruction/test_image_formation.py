@@ -372,3 +372,31 @@ def test_own_bands_only_where_every_sample_sees_one_band_alone() -> None:
     broad = single.copy()
     broad[1, :, 1] = 0.1  # sample 1 sees two bands
     assert _own_bands(broad) is None
+
+
+@pytest.mark.parametrize("wrap", [False, True])
+def test_distinct_pairs_match_a_sort_of_every_pair(wrap: bool) -> None:
+    """The general route's table of (raw pixel, source pixel) pairs gives what
+    ``np.unique`` gives: the same distinct pairs, in the same order, and each entry's rank,
+    for stencils reaching up to 5 px, clamped at the patch's border or wrapped round it
+    (which falls back to the sort). 40 entries per pixel, as many as 7 samples of a
+    bilinear Φ give: the table is used unless the stencils wrap."""
+    from reconstruction.image_formation import _distinct_pairs
+
+    rng = np.random.default_rng(3)
+    for rows, cols in [(1, 1), (1, 9), (24, 36), (37, 13)]:
+        npx = rows * cols
+        raw = rng.integers(0, npx, 40 * npx)
+        ry, rx = raw // cols, raw % cols
+        reach = min(5, rows - 1, cols - 1)
+        sy = ry + rng.integers(-reach, reach + 1, raw.size)
+        sx = rx + rng.integers(-reach, reach + 1, raw.size)
+        if wrap:
+            sy, sx = sy % rows, sx % cols
+        else:
+            sy, sx = np.clip(sy, 0, rows - 1), np.clip(sx, 0, cols - 1)
+        sources = sy * cols + sx
+        pairs, which = _distinct_pairs(raw, sources, cols, npx)
+        expected, inverse = np.unique(raw * npx + sources, return_inverse=True)
+        np.testing.assert_array_equal(pairs, expected)
+        np.testing.assert_array_equal(which, inverse.ravel())
