@@ -239,12 +239,12 @@ class ImageFormation(LinearOperator):
         if dispersion is not None:
             if dispersion.patch_shape != (rows, cols):
                 raise DataError("Φ's patch shape differs from the image formation's")
-            if len(dispersion.matrices) != colour_matrices.shape[0]:
+            if len(dispersion.stencils) != colour_matrices.shape[0]:
                 raise DataError(
-                    f"{len(dispersion.matrices)} dispersion samples but "
+                    f"{len(dispersion.stencils)} dispersion samples but "
                     f"{colour_matrices.shape[0]} colour matrices"
                 )
-            self._matrix = self._combined(dispersion.matrices)
+            self._matrix = self._combined(dispersion)
             self._matrix_t = self._matrix.T.tocsr()
         elif colour_matrices.shape[0] != 1:
             raise DataError("without dispersion there must be exactly one colour matrix")
@@ -263,7 +263,7 @@ class ImageFormation(LinearOperator):
         """The same A with Φ = identity."""
         return ImageFormation(self.domain_shape[:2], self.cfa, self.colour_matrix[None])
 
-    def _combined(self, matrices: list[sp.csr_matrix]) -> sp.csr_matrix:
+    def _combined(self, dispersion: Dispersion) -> sp.csr_matrix:
         """``M Σ_j Φ_j (· C_jᵀ)`` as one (rows·cols) × (rows·cols·n) matrix on the latent image.
 
         Consecutive samples' bilinear stencils overlap almost entirely (they are ≤ 0.1 px
@@ -273,24 +273,23 @@ class ImageFormation(LinearOperator):
         """
         bands = _own_bands(self.colour_matrices)
         if bands is not None:
-            return self._combined_per_band(matrices, bands)
+            return self._combined_per_band(dispersion.matrices, bands)
         npx = int(np.prod(self.domain_shape[:2]))
         n = self.domain_shape[2]
-        channel = self.channel_index.ravel()
-        rows, cols, weights, columns = [], [], [], []
-        for j, matrix in enumerate(matrices):
-            counts = np.diff(matrix.indptr)
-            r = np.repeat(np.arange(npx, dtype=np.int64), counts)
-            rows.append(r)
-            cols.append(matrix.indices.astype(np.int64))
-            weights.append(matrix.data)
-            columns.append(3 * j + channel[r])
-        rows_all, cols_all = np.concatenate(rows), np.concatenate(cols)
+        stencils = dispersion.stencils
+        taps = stencils[0][0].shape[1]
+        # every sample's stencil entries in one list: raw pixel, source pixel, weight and
+        # the gather column (sample, raw pixel's channel); repeats and zeros are summed in
+        rows_all = np.tile(np.repeat(np.arange(npx, dtype=np.int64), taps), len(stencils))
+        cols_all = np.concatenate([indices.ravel() for indices, _ in stencils])
+        weights = [w.ravel() for _, w in stencils]
+        channel = np.repeat(self.channel_index.ravel(), taps)
+        columns = [3 * j + channel for j in range(len(stencils))]
         pairs, which = _distinct_pairs(rows_all, cols_all, self.domain_shape[1], npx)
         # per distinct (raw pixel, source pixel): Σ_j w_j C_j[channel, :]
         gather = sp.csr_matrix(
             (np.concatenate(weights), (which, np.concatenate(columns))),
-            shape=(pairs.size, 3 * len(matrices)),
+            shape=(pairs.size, 3 * len(stencils)),
         )
         values = gather @ self.colour_matrices.reshape(-1, n)
         per_row = np.bincount(pairs // npx, minlength=npx) * n

@@ -5,9 +5,11 @@ aberrated image the camera sees, one band at a time. Output band k at pixel q (a
 in the band image) is the latent band k sampled by bilinear interpolation at
 q + e(q, λ_k), where e is a ``to_reference`` dispersion model's displacement (thesis
 §3.2.4, last paragraph: for image estimation, dispersion is expressed in coordinates of
-the aberrated image). Each band's map is a sparse matrix of bilinear weights (four per
-output pixel), built once, so each iteration of the solver costs one sparse product per
-band instead of an evaluation of the dispersion model.
+the aberrated image). Each band's map is a stencil of bilinear weights (four source pixels
+and weights per output pixel), built once: the image formation folds every band's stencil
+into its own sparse matrix, and Φ applied alone builds a sparse matrix per band when first
+used, so each iteration of the solver costs sparse products instead of evaluations of the
+dispersion model.
 
 Bilinear interpolation is a low-pass filter as well as a shift: at a half-pixel shift it
 halves the contrast of a pattern 4 px in period and cancels Nyquist. The camera's bands are
@@ -23,6 +25,7 @@ patch so that consecutive sampled bands shift by about 0.1 px or less.
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any
 
@@ -66,9 +69,13 @@ class Dispersion(LinearOperator):
 
     Attributes
     ----------
+    stencils : list of (ndarray, ndarray)
+        Per band, the flat source pixels (int64) and weights (float64) of every output
+        pixel, (rows·cols, 4) bilinear or (rows·cols, 16) cubic; clamped or wrapped sources
+        may repeat within a row, and weights may be 0.
     matrices : list of scipy.sparse.csr_matrix
         One (rows·cols) × (rows·cols) matrix per band, float64, acting on the band
-        flattened in row-major order.
+        flattened in row-major order (the stencils', built when first used).
     max_shift_px : float
         Largest displacement length ‖e‖ over the patch's pixels and the bands, px; a
         value well below 0.1 px means Φ could be skipped.
@@ -156,7 +163,7 @@ class Dispersion(LinearOperator):
         sampling = _SAMPLING[interpolation]
 
         yy, xx = np.mgrid[0:rows, 0:cols].astype(np.float64)
-        self.matrices: list[sp.csr_matrix] = []
+        self.stencils: list[tuple[np.ndarray, np.ndarray]] = []
         max_shift = 0.0
         means = []
         for band in bands:
@@ -165,9 +172,15 @@ class Dispersion(LinearOperator):
                 raise DataError(f"the dispersion model gives NaN or Inf displacements at {band}")
             max_shift = max(max_shift, float(np.sqrt(np.max(ex * ex + ey * ey))))
             means.append((float(np.mean(ex)), float(np.mean(ey))))
-            self.matrices.append(sampling(xx + ex, yy + ey, rows, cols, boundary))
+            self.stencils.append(sampling(xx + ex, yy + ey, rows, cols, boundary))
         self.max_shift_px = max_shift
         self.mean_displacement_px = np.array(means, dtype=np.float64).reshape(-1, 2)
+
+    @functools.cached_property
+    def matrices(self) -> list[sp.csr_matrix]:
+        """One CSR matrix per band (built from :attr:`stencils` when first asked for)."""
+        npx = int(np.prod(self.patch_shape))
+        return [_sparse_rows(indices, weights, npx) for indices, weights in self.stencils]
 
     def _forward(self, x: np.ndarray) -> np.ndarray:
         return self._apply(x, transpose=False)
@@ -232,15 +245,15 @@ def check_interpolation(interpolation: str) -> str:
     return interpolation
 
 
-def _bilinear_matrix(
+def _bilinear_stencil(
     sx: np.ndarray, sy: np.ndarray, rows: int, cols: int, boundary: str = "clamp"
-) -> sp.csr_matrix:
-    """CSR matrix sampling a (rows, cols) image bilinearly at (sx, sy).
+) -> tuple[np.ndarray, np.ndarray]:
+    """Source pixels and weights (n, 4) sampling a (rows, cols) image bilinearly at (sx, sy).
 
-    Row i·cols + j of the matrix holds the four bilinear weights of the sample point of
-    output pixel (i, j). With ``boundary="clamp"`` sample points outside
-    [0, cols − 1] × [0, rows − 1] are moved to the nearest point of that rectangle; with
-    ``"periodic"`` neighbour indices wrap around.
+    Row i·cols + j holds the four bilinear weights of the sample point of output pixel
+    (i, j), and the flat indices of the pixels they weigh. With ``boundary="clamp"``
+    sample points outside [0, cols − 1] × [0, rows − 1] are moved to the nearest point of
+    that rectangle; with ``"periodic"`` neighbour indices wrap around.
     """
     if boundary == "periodic":
         x0 = np.floor(sx.ravel()).astype(np.int64)
@@ -249,7 +262,7 @@ def _bilinear_matrix(
         fy = sy.ravel() - y0
         x0, y0 = x0 % cols, y0 % rows
         x1, y1 = (x0 + 1) % cols, (y0 + 1) % rows
-        return _csr(x0, x1, y0, y1, fx, fy, rows, cols)
+        return _corners(x0, x1, y0, y1, fx, fy, rows, cols)
     sx = np.clip(sx.ravel(), 0.0, cols - 1.0)
     sy = np.clip(sy.ravel(), 0.0, rows - 1.0)
     x0 = np.clip(np.floor(sx).astype(np.int64), 0, max(cols - 2, 0))
@@ -258,10 +271,10 @@ def _bilinear_matrix(
     y1 = np.minimum(y0 + 1, rows - 1)
     fx = sx - x0  # in [0, 1]; 0 when cols == 1
     fy = sy - y0
-    return _csr(x0, x1, y0, y1, fx, fy, rows, cols)
+    return _corners(x0, x1, y0, y1, fx, fy, rows, cols)
 
 
-def _csr(
+def _corners(
     x0: np.ndarray,
     x1: np.ndarray,
     y0: np.ndarray,
@@ -270,11 +283,11 @@ def _csr(
     fy: np.ndarray,
     rows: int,
     cols: int,
-) -> sp.csr_matrix:
-    """The bilinear sampling matrix from corner indices and fractions (one row per pixel)."""
+) -> tuple[np.ndarray, np.ndarray]:
+    """The bilinear stencil from corner indices and fractions (one row per pixel)."""
     indices = np.stack([y0 * cols + x0, y0 * cols + x1, y1 * cols + x0, y1 * cols + x1], axis=1)
     weights = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], axis=1)
-    return _sparse_rows(indices, weights, rows * cols)
+    return indices, weights
 
 
 def keys_kernel(t: np.ndarray, a: float = -0.5) -> np.ndarray:
@@ -285,10 +298,26 @@ def keys_kernel(t: np.ndarray, a: float = -0.5) -> np.ndarray:
     return np.where(t <= 1.0, near, np.where(t < 2.0, far, 0.0))
 
 
-def _cubic_matrix(
+def _keys_taps(fraction: np.ndarray, a: float = -0.5) -> np.ndarray:
+    """:func:`keys_kernel` at offsets ``fraction - (-1, 0, 1, 2)`` (n, 4) for fractions in
+    [0, 1): the outer taps on the kernel's far piece, the inner on its near piece, the same
+    values without evaluating both pieces at every tap."""
+    f = fraction.ravel()
+    out = np.empty((f.size, 4))
+    pieces = ((1.0 + f, False), (f, True), (1.0 - f, True), (2.0 - f, False))
+    for column, (t, near) in enumerate(pieces):
+        if near:
+            out[:, column] = ((a + 2.0) * t - (a + 3.0)) * t * t + 1.0
+        else:
+            out[:, column] = ((a * t - 5.0 * a) * t + 8.0 * a) * t - 4.0 * a
+    return out
+
+
+def _cubic_stencil(
     sx: np.ndarray, sy: np.ndarray, rows: int, cols: int, boundary: str = "clamp"
-) -> sp.csr_matrix:
-    """CSR matrix sampling a (rows, cols) image at (sx, sy) by Keys' cubic convolution.
+) -> tuple[np.ndarray, np.ndarray]:
+    """Source pixels and weights (n, 16) sampling a (rows, cols) image at (sx, sy) by Keys'
+    cubic convolution.
 
     Row i·cols + j holds the 4 × 4 weights around the sample point of output pixel (i, j).
     With ``boundary="clamp"`` sample points are first moved into the image and neighbours
@@ -303,15 +332,15 @@ def _cubic_matrix(
     offsets = np.arange(-1, 3)
     xs = x0[:, None] + offsets  # (n, 4) neighbour columns and their weights
     ys = y0[:, None] + offsets
-    wx = keys_kernel((sx - x0)[:, None] - offsets)
-    wy = keys_kernel((sy - y0)[:, None] - offsets)
+    wx = _keys_taps(sx - x0)
+    wy = _keys_taps(sy - y0)
     if boundary == "periodic":
         xs, ys = xs % cols, ys % rows
     else:
         xs, ys = np.clip(xs, 0, cols - 1), np.clip(ys, 0, rows - 1)
     indices = (ys[:, :, None] * cols + xs[:, None, :]).reshape(-1, 16)
     weights = (wy[:, :, None] * wx[:, None, :]).reshape(-1, 16)
-    return _sparse_rows(indices, weights, rows * cols)
+    return indices, weights
 
 
 def _sparse_rows(indices: np.ndarray, weights: np.ndarray, n: int) -> sp.csr_matrix:
@@ -331,7 +360,7 @@ def _sparse_rows(indices: np.ndarray, weights: np.ndarray, n: int) -> sp.csr_mat
     return matrix
 
 
-_SAMPLING = {"bilinear": _bilinear_matrix, "cubic": _cubic_matrix}
+_SAMPLING = {"bilinear": _bilinear_stencil, "cubic": _cubic_stencil}
 
 
 def dispersion_samples(

@@ -340,3 +340,16 @@ def test_wavelengths_must_match_the_model_kind() -> None:
     op = Dispersion(spectral_model(ConstantField((0.2, 0.1))), np.array([500.0, 600.0]))
     with pytest.raises(DataError, match="expects shape"):
         op.forward(np.zeros((*SHAPE, 3)))
+
+
+def test_keys_taps_are_the_kernel_at_the_four_offsets() -> None:
+    """The cubic stencil's weights, each evaluated on its own piece of the kernel, are
+    :func:`keys_kernel` at the offsets −1, 0, 1, 2 to the bit, integer sample points (a
+    fraction of 0) included, and sum to 1."""
+    from reconstruction.operators.dispersion import _keys_taps, keys_kernel
+
+    fraction = np.concatenate([[0.0, 0.5, 1 - 2**-52], np.random.default_rng(0).random(1000)])
+    taps = _keys_taps(fraction)
+    expected = keys_kernel(fraction[:, None] - np.arange(-1, 3))
+    np.testing.assert_array_equal(taps, expected)
+    np.testing.assert_allclose(taps.sum(axis=1), 1.0, rtol=0, atol=1e-15)
