@@ -400,20 +400,26 @@ def _distinct_pairs(
 ) -> tuple[np.ndarray, np.ndarray]:
     """``np.unique(rows * npx + sources, return_inverse=True)`` for sampling stencils.
 
-    Every source pixel lies within a few pixels of its raw pixel, so each pair is keyed by
-    the raw pixel and the source's offset in a small window, and a table over those keys
-    finds the distinct pairs and their ranks in linear time instead of sorting (the same
-    pairs, in the same order). Stencils that reach far (a periodic boundary wraps them
-    round) keep the sort.
+    Every source pixel lies within a few pixels of its raw pixel, or does once the patch is
+    wrapped round (a periodic boundary), so each pair is keyed by the raw pixel and the
+    source's offset in a small window, and a table over those keys finds the distinct pairs
+    and their ranks in linear time; only the distinct pairs of raw pixels whose stencils
+    wrap need sorting into ``np.unique``'s order (the same pairs, ranks and order).
+    Stencils that reach far keep the sort of every pair.
     """
-    # the source's offset as (rows, columns), the columns within half the patch's width
-    # (a product by 1/cols rounds the same as integer division, at a fraction of its cost)
+    # the source's offset, wrapped round the patch into (−npx/2, npx/2], as (rows, columns)
+    # with the columns within half the patch's width (a product by 1/cols rounds as integer
+    # division does, at a fraction of its cost)
     offset = sources - rows
+    half = npx // 2
+    offset = np.where(
+        offset > half, offset - npx, np.where(offset <= half - npx, offset + npx, offset)
+    )
     dy = np.rint(offset * (1.0 / cols)).astype(np.int64)
     dx = offset - dy * cols
     reach = int(max(np.abs(dy).max(initial=0), np.abs(dx).max(initial=0)))
     width = 2 * reach + 1
-    if npx * width * width > 4 * rows.size:
+    if npx * width * width > 16 * rows.size:
         return np.unique(rows * npx + sources, return_inverse=True)
     keys = (rows * width + dy + reach) * width + dx + reach
     seen = np.zeros(npx * width * width, dtype=bool)
@@ -422,8 +428,15 @@ def _distinct_pairs(
     distinct = np.flatnonzero(seen)
     offsets = distinct % (width * width)
     raw = distinct // (width * width)
-    source = raw + (offsets // width - reach) * cols + (offsets % width - reach)
-    return raw * npx + source, rank[keys]
+    source = (raw + (offsets // width - reach) * cols + (offsets % width - reach)) % npx
+    pairs = raw * npx + source
+    which = rank[keys]
+    if np.any(pairs[1:] <= pairs[:-1]):  # wrapped sources, out of order within their row
+        order = np.argsort(pairs)
+        position = np.empty_like(order)
+        position[order] = np.arange(order.size)
+        pairs, which = pairs[order], position[which]
+    return pairs, which
 
 
 def _own_bands(colour_matrices: np.ndarray) -> np.ndarray | None:

@@ -379,8 +379,9 @@ def test_distinct_pairs_match_a_sort_of_every_pair(wrap: bool) -> None:
     """The general route's table of (raw pixel, source pixel) pairs gives what
     ``np.unique`` gives: the same distinct pairs, in the same order, and each entry's rank,
     for stencils reaching up to 5 px, clamped at the patch's border or wrapped round it
-    (which falls back to the sort). 40 entries per pixel, as many as 7 samples of a
-    bilinear Φ give: the table is used unless the stencils wrap."""
+    (Φ's periodic boundary, whose wrapped rows the table leaves out of order until the
+    distinct pairs are sorted), with 40 entries per pixel, as many as 10 samples of a
+    bilinear Φ give."""
     from reconstruction.image_formation import _distinct_pairs
 
     rng = np.random.default_rng(3)
