@@ -262,7 +262,7 @@ def _bilinear_stencil(
         fy = sy.ravel() - y0
         x0, y0 = x0 % cols, y0 % rows
         x1, y1 = (x0 + 1) % cols, (y0 + 1) % rows
-        return _corners(x0, x1, y0, y1, fx, fy, rows, cols)
+        return _corners(x0, x1, y0, y1, fx, fy, cols)
     sx = np.clip(sx.ravel(), 0.0, cols - 1.0)
     sy = np.clip(sy.ravel(), 0.0, rows - 1.0)
     x0 = np.clip(np.floor(sx).astype(np.int64), 0, max(cols - 2, 0))
@@ -271,7 +271,7 @@ def _bilinear_stencil(
     y1 = np.minimum(y0 + 1, rows - 1)
     fx = sx - x0  # in [0, 1]; 0 when cols == 1
     fy = sy - y0
-    return _corners(x0, x1, y0, y1, fx, fy, rows, cols)
+    return _corners(x0, x1, y0, y1, fx, fy, cols)
 
 
 def _corners(
@@ -281,7 +281,6 @@ def _corners(
     y1: np.ndarray,
     fx: np.ndarray,
     fy: np.ndarray,
-    rows: int,
     cols: int,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The bilinear stencil from corner indices and fractions (one row per pixel)."""
@@ -293,9 +292,17 @@ def _corners(
 def keys_kernel(t: np.ndarray, a: float = -0.5) -> np.ndarray:
     """Keys' cubic convolution kernel at offsets `t` (px): 1 at 0, 0 at other integers."""
     t = np.abs(t)
-    near = ((a + 2.0) * t - (a + 3.0)) * t * t + 1.0
-    far = ((a * t - 5.0 * a) * t + 8.0 * a) * t - 4.0 * a
-    return np.where(t <= 1.0, near, np.where(t < 2.0, far, 0.0))
+    return np.where(t <= 1.0, _keys_near(t, a), np.where(t < 2.0, _keys_far(t, a), 0.0))
+
+
+def _keys_near(t: np.ndarray, a: float) -> np.ndarray:
+    """Keys' kernel for |offsets| t in [0, 1]."""
+    return ((a + 2.0) * t - (a + 3.0)) * t * t + 1.0
+
+
+def _keys_far(t: np.ndarray, a: float) -> np.ndarray:
+    """Keys' kernel for |offsets| t in [1, 2]."""
+    return ((a * t - 5.0 * a) * t + 8.0 * a) * t - 4.0 * a
 
 
 def _keys_taps(fraction: np.ndarray, a: float = -0.5) -> np.ndarray:
@@ -303,14 +310,10 @@ def _keys_taps(fraction: np.ndarray, a: float = -0.5) -> np.ndarray:
     [0, 1): the outer taps on the kernel's far piece, the inner on its near piece, the same
     values without evaluating both pieces at every tap."""
     f = fraction.ravel()
-    out = np.empty((f.size, 4))
-    pieces = ((1.0 + f, False), (f, True), (1.0 - f, True), (2.0 - f, False))
-    for column, (t, near) in enumerate(pieces):
-        if near:
-            out[:, column] = ((a + 2.0) * t - (a + 3.0)) * t * t + 1.0
-        else:
-            out[:, column] = ((a * t - 5.0 * a) * t + 8.0 * a) * t - 4.0 * a
-    return out
+    return np.stack(
+        [_keys_far(1.0 + f, a), _keys_near(f, a), _keys_near(1.0 - f, a), _keys_far(2.0 - f, a)],
+        axis=1,
+    )
 
 
 def _cubic_stencil(
