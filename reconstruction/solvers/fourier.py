@@ -9,7 +9,9 @@ rows·cols/4 independent Hermitian systems of size 4n, one per frequency *quadru
 They are inverted once (batched) and every solve is two FFTs and a batched product.
 The image being real, its spectrum and K are conjugate-symmetric, so only one quadruple
 of each conjugate pair is inverted and applied (:func:`conjugate_quadruples`): half the
-inversion time and memory, and fewer products per solve (figures in the README).
+inversion time and memory, and fewer products per solve; the FFTs are real-to-complex,
+gathering the kept quadruples from half the spectrum and filling half the spectrum back
+from them (:func:`_half_spectrum_maps`; figures in the README).
 
 Derivation. A channel mask is ``m_c(y, x) = Σ_s a_{c,s} exp(iπ(s_y y + s_x x))`` with
 ``a_{c,s} = ¼ Σ_{phases (p, q) of c} (−1)^{s_y p + s_x q}``; multiplying by
@@ -22,6 +24,7 @@ the solver doubles as the preconditioner of the conjugate-gradient solve with th
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import math
 import threading
@@ -105,6 +108,41 @@ def conjugate_quadruples(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray
     filled_rows = (4 * filled[:, None] + members).ravel()
     source_rows = (4 * position[partner[filled]][:, None] + (members ^ mask[filled, None])).ravel()
     return kept, filled_rows, source_rows
+
+
+@functools.lru_cache(maxsize=16)
+def _half_spectrum_maps(
+    shape: tuple[int, int],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Where the kept quadruples' members sit in a real image's half spectrum (rfft2).
+
+    Returns the kept quadruples (:func:`conjugate_quadruples`); for each of their members
+    in order, its row of the (rows · (cols/2 + 1)) half spectrum and whether it is that
+    row's conjugate; and for each row of the half spectrum, the member (a row of the kept
+    quadruples' compact (H · 4) array) that holds it and whether as its conjugate. One
+    gather each way per solve, on half the spectrum the full FFT would transform.
+    """
+    rows, cols = shape
+    width = cols // 2 + 1
+    kept, filled_rows, source_rows = conjugate_quadruples(shape)
+    natural = to_quadruples(np.arange(rows * cols).reshape(rows, cols))
+    members = natural[kept].ravel()
+    # a frequency (k, l) right of the half spectrum is the conjugate of (−k, −l)
+    row, col = np.divmod(members, cols)
+    right = col >= width
+    gather = np.where(right, (-row) % rows, row) * width + np.where(right, cols - col, col)
+    holder = np.empty(rows * cols, dtype=np.int64)
+    conjugated = np.zeros(rows * cols, dtype=bool)
+    holder[members] = np.arange(members.size)
+    holder[natural.ravel()[filled_rows]] = source_rows
+    conjugated[natural.ravel()[filled_rows]] = True
+    row, col = np.divmod(np.arange(rows * width), width)
+    half = holder[row * cols + col]
+    half_conjugated = conjugated[row * cols + col]
+    maps = (kept, gather, right, half, half_conjugated)
+    for array in maps:
+        array.flags.writeable = False
+    return maps
 
 
 class _BlockCache:
@@ -311,13 +349,9 @@ class FourierSolver:
         a_xor = a[:, xor]  # (3, 4, 4)
         # a real image's spectrum is conjugate-symmetric, and so is K: only about half the
         # quadruples are solved, the rest are their conjugates (about half the time)
-        self._kept, filled_rows, self._source_rows = conjugate_quadruples(self.shape)
-        # where the kept quadruples' members and the conjugate-filled rows sit in the
-        # spectrum's own (rows · cols) order: one gather and two scatters per solve instead
-        # of regrouping whole spectra
-        natural = to_quadruples(np.arange(rows * cols).reshape(rows, cols))
-        self._gather = natural[self._kept].ravel()
-        self._filled_at = natural.ravel()[filled_rows]
+        self._kept, self._gather, self._gather_conj, self._half, self._half_conj = (
+            _half_spectrum_maps(self.shape)
+        )
         # the data term of a quadruple is U^H U with U (4 × 4n): its 4 raw frequencies from
         # its 4n latent ones, U[u, (t, j)] = √α Σ_c a[c, u ⊕ t] C_c(k_t)[j] (the channel
         # masks are disjoint, so the cross-channel products vanish)
@@ -403,8 +437,9 @@ class FourierSolver:
         """K x or K⁻¹ x through the per-quadruple blocks; `blocks` replaces K⁻¹'s (no
         refinement then), and x's precision carries through the FFTs."""
         n = self.channels
-        spectrum = scipy.fft.fft2(x, axes=(0, 1)).reshape(-1, n)
-        spectrum = spectrum[self._gather].reshape(-1, 4 * n, 1)
+        spectrum = scipy.fft.rfft2(x, axes=(0, 1)).reshape(-1, n)[self._gather]
+        np.conjugate(spectrum, out=spectrum, where=self._gather_conj[:, None])
+        spectrum = spectrum.reshape(-1, 4 * n, 1)
         if blocks is not None:
             out = blocks @ spectrum
         elif inverse:
@@ -418,12 +453,12 @@ class FourierSolver:
     def _to_image(self, kept: np.ndarray) -> np.ndarray:
         """Real image (rows, cols, …) from the kept quadruples' spectrum (H, 4, …)."""
         rest = kept.shape[2:]
-        compact = kept.reshape(-1, *rest)
-        full = np.empty((self.shape[0] * self.shape[1], *rest), dtype=kept.dtype)
-        full[self._gather] = compact
-        full[self._filled_at] = compact[self._source_rows].conj()
-        result = full.reshape(*self.shape, *rest)
-        return scipy.fft.ifft2(result, axes=(0, 1), overwrite_x=True).real
+        half = kept.reshape(-1, *rest)[self._half]
+        where = self._half_conj.reshape(-1, *(1,) * len(rest))
+        np.conjugate(half, out=half, where=where)
+        rows, cols = self.shape
+        half = half.reshape(rows, cols // 2 + 1, *rest)
+        return scipy.fft.irfft2(half, s=self.shape, axes=(0, 1), overwrite_x=True)
 
     def impulse_responses(self, *, refine: bool = True) -> np.ndarray:
         """Columns of K⁻¹ at the 4n impulses of one Bayer period, (2, 2, n, rows, cols, n).
