@@ -239,9 +239,9 @@ class ImageFormation(LinearOperator):
         if dispersion is not None:
             if dispersion.patch_shape != (rows, cols):
                 raise DataError("Φ's patch shape differs from the image formation's")
-            if len(dispersion.stencils) != colour_matrices.shape[0]:
+            if len(dispersion.taps.offsets_y) != colour_matrices.shape[0]:
                 raise DataError(
-                    f"{len(dispersion.stencils)} dispersion samples but "
+                    f"{len(dispersion.taps.offsets_y)} dispersion samples but "
                     f"{colour_matrices.shape[0]} colour matrices"
                 )
             self._matrix = self._combined(dispersion)
@@ -266,38 +266,98 @@ class ImageFormation(LinearOperator):
     def _combined(self, dispersion: Dispersion) -> sp.csr_matrix:
         """``M Σ_j Φ_j (· C_jᵀ)`` as one (rows·cols) × (rows·cols·n) matrix on the latent image.
 
-        Consecutive samples' bilinear stencils overlap almost entirely (they are ≤ 0.1 px
-        apart), so folding the colour matrices in leaves only the few distinct source pixels
-        of each raw pixel times n bands: far fewer products than mixing every sample's
-        colour image and then interpolating it.
+        Consecutive samples' stencils overlap almost entirely (they are ≤ 0.1 px apart), so
+        folding the colour matrices in leaves only the few distinct source pixels of each
+        raw pixel times n bands: far fewer products than mixing every sample's colour image
+        and then interpolating it. The fold reads Φ's taps per axis
+        (:class:`~reconstruction.operators.dispersion.AxisTaps`), finds
+        the distinct (raw pixel, source pixel) pairs with a table over each raw pixel's
+        window of source offsets, and sums each pair's weights times its channel's colours
+        over the samples in order.
         """
         bands = _own_bands(self.colour_matrices)
         if bands is not None:
             return self._combined_per_band(dispersion.matrices, bands)
+        rows, cols = self.domain_shape[:2]
+        npx, n = rows * cols, self.domain_shape[2]
+        taps = dispersion.taps
+        samples, width, _ = taps.offsets_y.shape
+        reach = int(max(np.abs(taps.offsets_y).max(), np.abs(taps.offsets_x).max()))
+        window = 2 * reach + 1
+        wraps = taps.boundary == "periodic" and (window > rows or window > cols)
+        if wraps or window * window > 16 * samples * width * width:
+            # a window larger than the patch would key one source by two offsets, and a
+            # far-reaching one would make the table larger than the pairs
+            return self._combined_by_sort(dispersion)
+        # each (raw pixel, source pixel) pair is keyed by the raw pixel and the source's
+        # offset in the window; the entries are taken in (sample, tap, channel, pixel)
+        # order, so that the gather below has one row per (sample, tap, channel) in order
+        channel = self.channel_index.ravel()
+        order = np.argsort(channel, kind="stable")
+        entries = samples * width * width * npx
+        small = max(npx * window * window, entries) < np.iinfo(np.int32).max
+        index = np.int32 if small else np.int64
+        offsets_y = np.take(taps.offsets_y, order, axis=2).astype(index, copy=False)
+        offsets_x = np.take(taps.offsets_x, order, axis=2).astype(index, copy=False)
+        base = ((order * window + reach) * window + reach).astype(index)
+        keys = ((offsets_y * window + base)[:, :, None, :] + offsets_x[:, None, :, :]).ravel()
+        seen = np.zeros(npx * window * window, dtype=bool)
+        seen[keys] = True
+        which = (np.cumsum(seen, dtype=index) - 1)[keys]
+        distinct = np.flatnonzero(seen)
+        del seen, keys
+        weights_y = np.take(taps.weights_y, order, axis=2)
+        weights_x = np.take(taps.weights_x, order, axis=2)
+        weights = weights_y[:, :, None, :] * weights_x[:, None, :, :]
+        # per distinct pair: Σ_j w_j C_j[channel, :], the sum running over the samples in
+        # order (as a product by a matrix sorted by pair would add them)
+        per_row = np.tile(np.bincount(channel, minlength=3), samples * width * width)
+        indptr = np.concatenate([[0], np.cumsum(per_row)]).astype(index)
+        gather = sp.csr_matrix(
+            (weights.ravel(), which, indptr), shape=(per_row.size, distinct.size)
+        )
+        colour = np.repeat(self.colour_matrices[:, None], width * width, axis=1)
+        values = gather.T @ colour.reshape(-1, n)
+        raw, offset = np.divmod(distinct, window * window)
+        dy, dx = np.divmod(offset, window)
+        sources = ((raw // cols + dy - reach) % rows) * cols + (raw % cols + dx - reach) % cols
+        if np.any((raw[1:] == raw[:-1]) & (sources[1:] <= sources[:-1])):
+            # wrapped sources, out of order within their row: a stable sort of nearly
+            # sorted pairs, in about linear time
+            resort = np.argsort(raw * npx + sources, kind="stable")
+            raw, sources, values = raw[resort], sources[resort], values[resort]
+        return self._assemble(raw, sources, values)
+
+    def _combined_by_sort(self, dispersion: Dispersion) -> sp.csr_matrix:
+        """:meth:`_combined` by a sort of every (raw pixel, source pixel) pair (stencils
+        that reach across the whole patch, where a table of offsets does not serve)."""
         npx = int(np.prod(self.domain_shape[:2]))
         n = self.domain_shape[2]
         stencils = dispersion.stencils
         taps = stencils[0][0].shape[1]
-        # every sample's stencil entries in one list: raw pixel, source pixel, weight and
-        # the gather column (sample, raw pixel's channel); repeats and zeros are summed in
         rows_all = np.tile(np.repeat(np.arange(npx, dtype=np.int64), taps), len(stencils))
         cols_all = np.concatenate([indices.ravel() for indices, _ in stencils])
-        weights = [w.ravel() for _, w in stencils]
+        weights = np.concatenate([w.ravel() for _, w in stencils])
         channel = np.repeat(self.channel_index.ravel(), taps)
-        columns = [3 * j + channel for j in range(len(stencils))]
-        pairs, which = _distinct_pairs(rows_all, cols_all, self.domain_shape[1], npx)
-        # per distinct (raw pixel, source pixel): Σ_j w_j C_j[channel, :]
-        gather = sp.csr_matrix(
-            (np.concatenate(weights), (which, np.concatenate(columns))),
-            shape=(pairs.size, 3 * len(stencils)),
-        )
+        columns = np.concatenate([3 * j + channel for j in range(len(stencils))])
+        pairs, which = np.unique(rows_all * npx + cols_all, return_inverse=True)
+        gather = sp.csr_matrix((weights, (which, columns)), shape=(pairs.size, 3 * len(stencils)))
         values = gather @ self.colour_matrices.reshape(-1, n)
-        per_row = np.bincount(pairs // npx, minlength=npx) * n
+        raw, sources = np.divmod(pairs, npx)
+        return self._assemble(raw, sources, values)
+
+    def _assemble(self, raw: np.ndarray, sources: np.ndarray, values: np.ndarray) -> sp.csr_matrix:
+        """A from its distinct (raw pixel, source pixel) pairs, in order, and their (pairs, n)
+        values over the bands."""
+        npx = int(np.prod(self.domain_shape[:2]))
+        n = self.domain_shape[2]
+        per_row = np.bincount(raw, minlength=npx) * n
         indptr = np.concatenate([[0], np.cumsum(per_row)])
-        indices = ((pairs % npx)[:, None] * n + np.arange(n)).ravel()
+        indices = (sources[:, None] * n + np.arange(n)).ravel()
         matrix = sp.csr_matrix((values.ravel(), indices, indptr), shape=(npx, npx * n))
         # colour matrices with zero entries (samples that see some bands only, where the
-        # per-band route does not apply) leave stored zeros that every product would read
+        # per-band route does not apply) and taps at whole-pixel positions leave stored
+        # zeros that every product would read
         matrix.eliminate_zeros()
         return matrix
 
@@ -393,50 +453,6 @@ def _translation_symbol(
         return sum(w * phase ** (whole + o) for o, w in zip(offsets, weights, strict=True))
 
     return axis(dy, rows)[:, None] * axis(dx, cols)[None, :]
-
-
-def _distinct_pairs(
-    rows: np.ndarray, sources: np.ndarray, cols: int, npx: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """``np.unique(rows * npx + sources, return_inverse=True)`` for sampling stencils.
-
-    Every source pixel lies within a few pixels of its raw pixel, or does once the patch is
-    wrapped round (a periodic boundary), so each pair is keyed by the raw pixel and the
-    source's offset in a small window, and a table over those keys finds the distinct pairs
-    and their ranks in linear time; only the distinct pairs of raw pixels whose stencils
-    wrap need sorting into ``np.unique``'s order (the same pairs, ranks and order).
-    Stencils that reach far keep the sort of every pair.
-    """
-    # the source's offset, wrapped round the patch into (−npx/2, npx/2], as (rows, columns)
-    # with the columns within half the patch's width (a product by 1/cols rounds as integer
-    # division does, at a fraction of its cost)
-    offset = sources - rows
-    half = npx // 2
-    offset = np.where(
-        offset > half, offset - npx, np.where(offset <= half - npx, offset + npx, offset)
-    )
-    dy = np.rint(offset * (1.0 / cols)).astype(np.int64)
-    dx = offset - dy * cols
-    reach = int(max(np.abs(dy).max(initial=0), np.abs(dx).max(initial=0)))
-    width = 2 * reach + 1
-    if npx * width * width > 16 * rows.size:
-        return np.unique(rows * npx + sources, return_inverse=True)
-    keys = (rows * width + dy + reach) * width + dx + reach
-    seen = np.zeros(npx * width * width, dtype=bool)
-    seen[keys] = True
-    rank = np.cumsum(seen, dtype=np.int64) - 1
-    distinct = np.flatnonzero(seen)
-    offsets = distinct % (width * width)
-    raw = distinct // (width * width)
-    source = (raw + (offsets // width - reach) * cols + (offsets % width - reach)) % npx
-    pairs = raw * npx + source
-    which = rank[keys]
-    if np.any(pairs[1:] <= pairs[:-1]):  # wrapped sources, out of order within their row
-        order = np.argsort(pairs)
-        position = np.empty_like(order)
-        position[order] = np.arange(order.size)
-        pairs, which = pairs[order], position[which]
-    return pairs, which
 
 
 def _own_bands(colour_matrices: np.ndarray) -> np.ndarray | None:

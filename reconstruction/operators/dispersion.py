@@ -5,11 +5,11 @@ aberrated image the camera sees, one band at a time. Output band k at pixel q (a
 in the band image) is the latent band k sampled by bilinear interpolation at
 q + e(q, λ_k), where e is a ``to_reference`` dispersion model's displacement (thesis
 §3.2.4, last paragraph: for image estimation, dispersion is expressed in coordinates of
-the aberrated image). Each band's map is a stencil of bilinear weights (four source pixels
-and weights per output pixel), built once: the image formation folds every band's stencil
-into its own sparse matrix, and Φ applied alone builds a sparse matrix per band when first
-used, so each iteration of the solver costs sparse products instead of evaluations of the
-dispersion model.
+the aberrated image). Each band's map is built once as its weights along each axis
+(:class:`AxisTaps`: two source rows and two source columns per output pixel, bilinear):
+the image formation folds every band's taps into its own sparse matrix, and Φ applied
+alone builds a stencil and a sparse matrix per band when first used, so each iteration of
+the solver costs sparse products instead of evaluations of the dispersion model.
 
 Bilinear interpolation is a low-pass filter as well as a shift: at a half-pixel shift it
 halves the contrast of a pattern 4 px in period and cancels Nyquist. The camera's bands are
@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import scipy.sparse as sp
@@ -69,10 +69,13 @@ class Dispersion(LinearOperator):
 
     Attributes
     ----------
+    taps : AxisTaps
+        Every band's sampling weights one axis at a time (what the stencils are made of,
+        and what the image formation folds).
     stencils : list of (ndarray, ndarray)
         Per band, the flat source pixels (int64) and weights (float64) of every output
         pixel, (rows·cols, 4) bilinear or (rows·cols, 16) cubic; clamped or wrapped sources
-        may repeat within a row, and weights may be 0.
+        may repeat within a row, and weights may be 0 (built from `taps` when first used).
     matrices : list of scipy.sparse.csr_matrix
         One (rows·cols) × (rows·cols) matrix per band, float64, acting on the band
         flattened in row-major order (the stencils', built when first used).
@@ -163,7 +166,7 @@ class Dispersion(LinearOperator):
         sampling = _SAMPLING[interpolation]
 
         yy, xx = np.mgrid[0:rows, 0:cols].astype(np.float64)
-        self.stencils: list[tuple[np.ndarray, np.ndarray]] = []
+        row_taps, col_taps = [], []
         max_shift = 0.0
         means = []
         for band in bands:
@@ -172,9 +175,31 @@ class Dispersion(LinearOperator):
                 raise DataError(f"the dispersion model gives NaN or Inf displacements at {band}")
             max_shift = max(max_shift, float(np.sqrt(np.max(ex * ex + ey * ey))))
             means.append((float(np.mean(ex)), float(np.mean(ey))))
-            self.stencils.append(sampling(xx + ex, yy + ey, rows, cols, boundary))
+            row_taps.append(sampling((yy + ey).ravel(), rows, boundary))
+            col_taps.append(sampling((xx + ex).ravel(), cols, boundary))
+        offsets_y, weights_y = (np.stack(v) for v in zip(*row_taps, strict=True))
+        offsets_x, weights_x = (np.stack(v) for v in zip(*col_taps, strict=True))
+        # the taps' sources relative to their output pixel's row and column
+        offsets_y -= yy.ravel().astype(np.int64)
+        offsets_x -= xx.ravel().astype(np.int64)
+        self.taps = AxisTaps(offsets_y, weights_y, offsets_x, weights_x, boundary)
         self.max_shift_px = max_shift
         self.mean_displacement_px = np.array(means, dtype=np.float64).reshape(-1, 2)
+
+    @functools.cached_property
+    def stencils(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Per band, the source pixels and weights (rows·cols, taps²) (see the class)."""
+        rows, cols = self.patch_shape
+        t = self.taps
+        pixel_rows, pixel_cols = np.divmod(np.arange(rows * cols), cols)
+        source_rows = np.swapaxes((pixel_rows + t.offsets_y) % rows, 1, 2)
+        source_cols = np.swapaxes((pixel_cols + t.offsets_x) % cols, 1, 2)
+        weights_y, weights_x = np.swapaxes(t.weights_y, 1, 2), np.swapaxes(t.weights_x, 1, 2)
+        taps = t.offsets_y.shape[1]
+        indices = source_rows[:, :, :, None] * cols + source_cols[:, :, None, :]
+        weights = weights_y[:, :, :, None] * weights_x[:, :, None, :]
+        shape = (rows * cols, taps * taps)
+        return [(indices[j].reshape(shape), weights[j].reshape(shape)) for j in range(len(indices))]
 
     @functools.cached_property
     def matrices(self) -> list[sp.csr_matrix]:
@@ -245,48 +270,42 @@ def check_interpolation(interpolation: str) -> str:
     return interpolation
 
 
-def _bilinear_stencil(
-    sx: np.ndarray, sy: np.ndarray, rows: int, cols: int, boundary: str = "clamp"
-) -> tuple[np.ndarray, np.ndarray]:
-    """Source pixels and weights (n, 4) sampling a (rows, cols) image bilinearly at (sx, sy).
+class AxisTaps(NamedTuple):
+    """Φ's sampling weights, one axis at a time, of every band and output pixel.
 
-    Row i·cols + j holds the four bilinear weights of the sample point of output pixel
-    (i, j), and the flat indices of the pixels they weigh. With ``boundary="clamp"``
-    sample points outside [0, cols − 1] × [0, rows − 1] are moved to the nearest point of
-    that rectangle; with ``"periodic"`` neighbour indices wrap around.
+    Output pixel p = (i, k) (flat index i·cols + k) of band j takes
+    ``weights_y[j, a, p] · weights_x[j, b, p]`` of the source pixel
+    ``(i + offsets_y[j, a, p], k + offsets_x[j, b, p])``, wrapped round the patch (periodic
+    boundary; with ``"clamp"`` the offsets already stay inside it). Offsets are int64 px,
+    (bands, taps, rows·cols) with 2 taps per axis bilinear and 4 cubic; weights float64,
+    the same shape.
     """
-    if boundary == "periodic":
-        x0 = np.floor(sx.ravel()).astype(np.int64)
-        y0 = np.floor(sy.ravel()).astype(np.int64)
-        fx = sx.ravel() - x0
-        fy = sy.ravel() - y0
-        x0, y0 = x0 % cols, y0 % rows
-        x1, y1 = (x0 + 1) % cols, (y0 + 1) % rows
-        return _corners(x0, x1, y0, y1, fx, fy, cols)
-    sx = np.clip(sx.ravel(), 0.0, cols - 1.0)
-    sy = np.clip(sy.ravel(), 0.0, rows - 1.0)
-    x0 = np.clip(np.floor(sx).astype(np.int64), 0, max(cols - 2, 0))
-    y0 = np.clip(np.floor(sy).astype(np.int64), 0, max(rows - 2, 0))
-    x1 = np.minimum(x0 + 1, cols - 1)
-    y1 = np.minimum(y0 + 1, rows - 1)
-    fx = sx - x0  # in [0, 1]; 0 when cols == 1
-    fy = sy - y0
-    return _corners(x0, x1, y0, y1, fx, fy, cols)
+
+    offsets_y: np.ndarray
+    weights_y: np.ndarray
+    offsets_x: np.ndarray
+    weights_x: np.ndarray
+    boundary: str
 
 
-def _corners(
-    x0: np.ndarray,
-    x1: np.ndarray,
-    y0: np.ndarray,
-    y1: np.ndarray,
-    fx: np.ndarray,
-    fy: np.ndarray,
-    cols: int,
+def _bilinear_taps(
+    position: np.ndarray, size: int, boundary: str = "clamp"
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The bilinear stencil from corner indices and fractions (one row per pixel)."""
-    indices = np.stack([y0 * cols + x0, y0 * cols + x1, y1 * cols + x0, y1 * cols + x1], axis=1)
-    weights = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], axis=1)
-    return indices, weights
+    """Source pixels and weights (2, n) sampling an axis of `size` px linearly at `position`.
+
+    With ``boundary="clamp"`` positions outside [0, size − 1] are moved to the nearest end
+    (and both taps stay inside the axis); with ``"periodic"`` the sources are not wrapped
+    here (:class:`AxisTaps` wraps them).
+    """
+    if boundary == "clamp":
+        position = np.clip(position, 0.0, size - 1.0)
+        first = np.clip(np.floor(position).astype(np.int64), 0, max(size - 2, 0))
+        second = np.minimum(first + 1, size - 1)
+    else:
+        first = np.floor(position).astype(np.int64)
+        second = first + 1
+    fraction = position - first  # in [0, 1]; 0 when size == 1
+    return np.stack([first, second]), np.stack([1 - fraction, fraction])
 
 
 def keys_kernel(t: np.ndarray, a: float = -0.5) -> np.ndarray:
@@ -306,44 +325,32 @@ def _keys_far(t: np.ndarray, a: float) -> np.ndarray:
 
 
 def _keys_taps(fraction: np.ndarray, a: float = -0.5) -> np.ndarray:
-    """:func:`keys_kernel` at offsets ``fraction - (-1, 0, 1, 2)`` (n, 4) for fractions in
+    """:func:`keys_kernel` at offsets ``fraction - (-1, 0, 1, 2)`` (4, n) for fractions in
     [0, 1): the outer taps on the kernel's far piece, the inner on its near piece, the same
     values without evaluating both pieces at every tap."""
     f = fraction.ravel()
     return np.stack(
-        [_keys_far(1.0 + f, a), _keys_near(f, a), _keys_near(1.0 - f, a), _keys_far(2.0 - f, a)],
-        axis=1,
+        [_keys_far(1.0 + f, a), _keys_near(f, a), _keys_near(1.0 - f, a), _keys_far(2.0 - f, a)]
     )
 
 
-def _cubic_stencil(
-    sx: np.ndarray, sy: np.ndarray, rows: int, cols: int, boundary: str = "clamp"
+def _cubic_taps(
+    position: np.ndarray, size: int, boundary: str = "clamp"
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Source pixels and weights (n, 16) sampling a (rows, cols) image at (sx, sy) by Keys'
-    cubic convolution.
+    """Source pixels and weights (4, n) sampling an axis of `size` px at `position` by
+    Keys' cubic convolution.
 
-    Row i·cols + j holds the 4 × 4 weights around the sample point of output pixel (i, j).
-    With ``boundary="clamp"`` sample points are first moved into the image and neighbours
-    beyond it repeat the border pixel; with ``"periodic"`` they wrap around.
+    With ``boundary="clamp"`` positions are first moved into the axis and sources beyond
+    it repeat its end pixel; with ``"periodic"`` the sources are not wrapped here
+    (:class:`AxisTaps` wraps them).
     """
-    sx, sy = sx.ravel(), sy.ravel()
     if boundary == "clamp":
-        sx = np.clip(sx, 0.0, cols - 1.0)
-        sy = np.clip(sy, 0.0, rows - 1.0)
-    x0 = np.floor(sx).astype(np.int64)
-    y0 = np.floor(sy).astype(np.int64)
-    offsets = np.arange(-1, 3)
-    xs = x0[:, None] + offsets  # (n, 4) neighbour columns and their weights
-    ys = y0[:, None] + offsets
-    wx = _keys_taps(sx - x0)
-    wy = _keys_taps(sy - y0)
-    if boundary == "periodic":
-        xs, ys = xs % cols, ys % rows
-    else:
-        xs, ys = np.clip(xs, 0, cols - 1), np.clip(ys, 0, rows - 1)
-    indices = (ys[:, :, None] * cols + xs[:, None, :]).reshape(-1, 16)
-    weights = (wy[:, :, None] * wx[:, None, :]).reshape(-1, 16)
-    return indices, weights
+        position = np.clip(position, 0.0, size - 1.0)
+    first = np.floor(position).astype(np.int64)
+    sources = first + np.arange(-1, 3)[:, None]
+    if boundary == "clamp":
+        sources = np.clip(sources, 0, size - 1)
+    return sources, _keys_taps(position - first)
 
 
 def _sparse_rows(indices: np.ndarray, weights: np.ndarray, n: int) -> sp.csr_matrix:
@@ -363,7 +370,7 @@ def _sparse_rows(indices: np.ndarray, weights: np.ndarray, n: int) -> sp.csr_mat
     return matrix
 
 
-_SAMPLING = {"bilinear": _bilinear_stencil, "cubic": _cubic_stencil}
+_SAMPLING = {"bilinear": _bilinear_taps, "cubic": _cubic_taps}
 
 
 def dispersion_samples(

@@ -11,7 +11,7 @@ from test_dispersion_operator import ConstantField, RadialField
 from labkit.cfa import CFA_LAYOUTS
 from labkit.errors import DataError
 from reconstruction.image_formation import ImageFormation, build_formation
-from reconstruction.operators import dot_test
+from reconstruction.operators import Dispersion, dot_test
 from reconstruction.prior_terms import PRIORS, PriorTerm, SmoothnessTerm
 from reconstruction.solvers.active_set import inverse_block
 from reconstruction.solvers.fourier import REFINE_RESIDUAL, FourierSolver
@@ -374,30 +374,32 @@ def test_own_bands_only_where_every_sample_sees_one_band_alone() -> None:
     assert _own_bands(broad) is None
 
 
-@pytest.mark.parametrize("wrap", [False, True])
-def test_distinct_pairs_match_a_sort_of_every_pair(wrap: bool) -> None:
-    """The general route's table of (raw pixel, source pixel) pairs gives what
-    ``np.unique`` gives: the same distinct pairs, in the same order, and each entry's rank,
-    for stencils reaching up to 5 px, clamped at the patch's border or wrapped round it
-    (Φ's periodic boundary, whose wrapped rows the table leaves out of order until the
-    distinct pairs are sorted), with 40 entries per pixel, as many as 10 samples of a
-    bilinear Φ give."""
-    from reconstruction.image_formation import _distinct_pairs
-
+@pytest.mark.parametrize("boundary", ["clamp", "periodic"])
+@pytest.mark.parametrize("interpolation", ["bilinear", "cubic"])
+def test_the_fold_by_offsets_matches_a_sort_of_every_pair(
+    interpolation: str, boundary: str
+) -> None:
+    """The general route keys each (raw pixel, source pixel) pair by the source's offset
+    in a window round the raw pixel; it gives the matrix that a sort of every pair gives
+    (``np.unique``): the same structure, and the same values to the bit with the periodic
+    boundary (with ``"clamp"``, repeated border sources are added in another order, to
+    1e-15), for radial dispersion up to 4 px at up to 13 samples, odd sizes and patches
+    narrower than the window (which take the sort) included."""
     rng = np.random.default_rng(3)
-    for rows, cols in [(1, 1), (1, 9), (24, 36), (37, 13)]:
-        npx = rows * cols
-        raw = rng.integers(0, npx, 40 * npx)
-        ry, rx = raw // cols, raw % cols
-        reach = min(5, rows - 1, cols - 1)
-        sy = ry + rng.integers(-reach, reach + 1, raw.size)
-        sx = rx + rng.integers(-reach, reach + 1, raw.size)
-        if wrap:
-            sy, sx = sy % rows, sx % cols
+    model = spectral_model(RadialField(0.05))
+    for origin, shape in [((0, 0), (24, 36)), ((3, 40), (37, 13)), ((30, 2), (6, 40))]:
+        waves = np.linspace(400.0, 700.0, 13)
+        dispersion = Dispersion(
+            model, waves, origin=origin, shape=shape, boundary=boundary, interpolation=interpolation
+        )
+        colour = rng.random((waves.size, 3, 5))
+        colour[:, 0, 3] = 0.0  # a stored zero the fold must drop
+        formation = ImageFormation(shape, "GBRG", colour, dispersion)
+        table, sort = formation._matrix, formation._combined_by_sort(dispersion)
+        np.testing.assert_array_equal(table.indptr, sort.indptr)
+        np.testing.assert_array_equal(table.indices, sort.indices)
+        if boundary == "periodic":
+            np.testing.assert_array_equal(table.data, sort.data)
         else:
-            sy, sx = np.clip(sy, 0, rows - 1), np.clip(sx, 0, cols - 1)
-        sources = sy * cols + sx
-        pairs, which = _distinct_pairs(raw, sources, cols, npx)
-        expected, inverse = np.unique(raw * npx + sources, return_inverse=True)
-        np.testing.assert_array_equal(pairs, expected)
-        np.testing.assert_array_equal(which, inverse.ravel())
+            np.testing.assert_allclose(table.data, sort.data, rtol=1e-15, atol=1e-15)
+        assert np.count_nonzero(table.data) == table.nnz
