@@ -32,7 +32,7 @@ MAIN_VARIANTS: tuple[tuple[str, dict[str, Any]], ...] = (
     ("§6.3 mean-colour reference, σ = 0", {"reference": "mean-colour", "spectral_smoothness": 0.0}),
     ("no non-negativity", {"nonneg": False}),
     ("L2 prior (the thesis')", {"prior": "L2", "band_balance": 0.0}),
-    ("cubic Φ", {"interpolation": "cubic"}),
+    ("bilinear Φ (the thesis')", {"interpolation": "bilinear"}),
     (
         "VTV, cubic Φ, auto:dmc-menon, σ = 0",
         {
