@@ -189,23 +189,26 @@ class Dispersion(LinearOperator):
     @functools.cached_property
     def stencils(self) -> list[tuple[np.ndarray, np.ndarray]]:
         """Per band, the source pixels and weights (rows·cols, taps²) (see the class)."""
-        rows, cols = self.patch_shape
-        t = self.taps
-        pixel_rows, pixel_cols = np.divmod(np.arange(rows * cols), cols)
-        source_rows = np.swapaxes((pixel_rows + t.offsets_y) % rows, 1, 2)
-        source_cols = np.swapaxes((pixel_cols + t.offsets_x) % cols, 1, 2)
-        weights_y, weights_x = np.swapaxes(t.weights_y, 1, 2), np.swapaxes(t.weights_x, 1, 2)
-        taps = t.offsets_y.shape[1]
-        indices = source_rows[:, :, :, None] * cols + source_cols[:, :, None, :]
-        weights = weights_y[:, :, :, None] * weights_x[:, :, None, :]
-        shape = (rows * cols, taps * taps)
-        return [(indices[j].reshape(shape), weights[j].reshape(shape)) for j in range(len(indices))]
+        return [self._stencil(j) for j in range(len(self.taps.offsets_y))]
 
     @functools.cached_property
     def matrices(self) -> list[sp.csr_matrix]:
-        """One CSR matrix per band (built from :attr:`stencils` when first asked for)."""
+        """One CSR matrix per band (built from the taps when first asked for, one band's
+        stencil at a time, so that the stencils are not kept beside the matrices)."""
         npx = int(np.prod(self.patch_shape))
-        return [_sparse_rows(indices, weights, npx) for indices, weights in self.stencils]
+        return [_sparse_rows(*self._stencil(j), npx) for j in range(len(self.taps.offsets_y))]
+
+    def _stencil(self, band: int) -> tuple[np.ndarray, np.ndarray]:
+        """Band `band`'s source pixels (int64) and weights, (rows·cols, taps²)."""
+        rows, cols = self.patch_shape
+        t = self.taps
+        pixel_rows, pixel_cols = np.divmod(np.arange(rows * cols), cols)
+        source_rows = ((pixel_rows + t.offsets_y[band]) % rows).T
+        source_cols = ((pixel_cols + t.offsets_x[band]) % cols).T
+        taps = source_rows.shape[1]
+        indices = source_rows[:, :, None] * cols + source_cols[:, None, :]
+        weights = t.weights_y[band].T[:, :, None] * t.weights_x[band].T[:, None, :]
+        return indices.reshape(-1, taps * taps), weights.reshape(-1, taps * taps)
 
     def _forward(self, x: np.ndarray) -> np.ndarray:
         return self._apply(x, transpose=False)

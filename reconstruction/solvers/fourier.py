@@ -133,9 +133,10 @@ def _half_spectrum_maps(
     gather = np.where(right, (-row) % rows, row) * width + np.where(right, cols - col, col)
     holder = np.empty(rows * cols, dtype=np.int64)
     conjugated = np.zeros(rows * cols, dtype=bool)
+    filled = natural.ravel()[filled_rows]
     holder[members] = np.arange(members.size)
-    holder[natural.ravel()[filled_rows]] = source_rows
-    conjugated[natural.ravel()[filled_rows]] = True
+    holder[filled] = source_rows
+    conjugated[filled] = True
     row, col = np.divmod(np.arange(rows * width), width)
     half = holder[row * cols + col]
     half_conjugated = conjugated[row * cols + col]
