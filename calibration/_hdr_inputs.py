@@ -2,7 +2,8 @@
 
 Layout: ``DIR/<scene>/<illumination>.exr`` (one :class:`~labkit.io.RawImage` each; values
 are fractions of saturation at the image's reference exposure). The ``hdr.yaml`` index is
-not needed: the images carry their own metadata.
+not needed: the images carry their own metadata. A folder that ``labkit hdr`` wrote is
+checked against its run manifest first, so a damaged or mixed set is refused.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from pathlib import Path
 
 from labkit.errors import DataError
 from labkit.io.exr import RawImage, read_raw_exr
+from labkit.io.output_folder import verify_output_folder
 
 #: Provenance key under which the loader records the file an image was read from.
 SOURCE_KEY = "source_file"
@@ -77,12 +79,14 @@ def load_filtered_hdr(
 
 
 def _hdr_root(folder: str | Path) -> Path:
-    """The HDR folder as a Path, or a DataError saying how to create it."""
+    """The HDR folder as a Path, checked against its run manifest if it has one (a folder
+    assembled by hand has none), or a DataError saying how to create it."""
     root = Path(folder)
     if not root.is_dir():
         raise DataError(
             f"HDR folder {root} does not exist; create it with `labkit hdr SESSION --out {root}`"
         )
+    verify_output_folder(root, what="HDR folder", rerun=f"`labkit hdr SESSION … --out {root}`")
     return root
 
 

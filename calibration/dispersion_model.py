@@ -369,7 +369,12 @@ def load_dispersion_model(path: str | Path) -> DispersionModel:
             "`labkit calibrate dispersion HDR_DIR --out MODEL.yaml`"
         )
     try:
-        data = yaml.safe_load(path.read_text())
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path} is not valid YAML: {exc}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(
+            f"dispersion model {path} cannot be read as YAML text ({exc}); give the model "
+            "file `labkit calibrate dispersion` wrote"
+        ) from None
     return DispersionModel.from_dict(data, source=str(path))

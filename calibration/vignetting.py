@@ -234,9 +234,14 @@ class VignettingModel:
                 f"vignetting model {path} does not exist; fit one with calibration.vignetting"
             )
         try:
-            data = yaml.safe_load(path.read_text())
+            data = yaml.safe_load(path.read_text(encoding="utf-8"))
         except yaml.YAMLError as exc:
             raise ConfigError(f"{path} is not valid YAML: {exc}") from None
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ConfigError(
+                f"vignetting model {path} cannot be read as YAML text ({exc}); give the "
+                "model file `labkit calibrate vignetting` wrote"
+            ) from None
         return cls.from_dict(data, source=str(path))
 
     @classmethod

@@ -190,8 +190,8 @@ def _capture(rigs: dict[str, Rig], out: Path) -> dict[str, Any]:
 def _hdr(out: Path) -> None:
     from labkit.hdr import run_hdr
 
-    for name in ("calibration", "scenes"):
-        run_hdr(out / "sessions" / name, out / "hdr", previews=True)
+    sessions = [out / "sessions" / name for name in ("calibration", "scenes")]
+    run_hdr(sessions, out / "hdr", previews=True)
 
 
 def _calibrate(rig: Rig, out: Path) -> dict[str, Any]:

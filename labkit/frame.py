@@ -50,6 +50,30 @@ class Frame:
 
 DARK = "dark"
 
+_FORBIDDEN = set('/\\:*?"<>|')
+
+
+def path_name_problem(name: str) -> str | None:
+    """Why `name` (a scene or illumination) cannot name a file or folder, or None if it can.
+
+    Scene and illumination names become path components of session frames
+    (``frames/<scene>/<illumination>/…``) and HDR images (``<scene>/<illumination>.exr``),
+    so they must be one plain component: not empty, not ``.``/``..`` or hidden (a leading
+    dot), no path separator, no control or reserved characters, at most 100 characters.
+    """
+    if not isinstance(name, str) or not name:
+        return "it is empty or not text"
+    if name.startswith("."):
+        return "it starts with a dot (a hidden or parent-folder name)"
+    if len(name) > 100:
+        return "it is longer than 100 characters"
+    bad = sorted({c for c in name if c in _FORBIDDEN or ord(c) < 32 or ord(c) == 127})
+    if bad:
+        return f"it contains {', '.join(repr(c) for c in bad)}"
+    if name != name.strip():
+        return "it starts or ends with white space"
+    return None
+
 
 def exposure_label(exposure_s: float) -> str:
     """A file-name-safe, unique label of an exposure time, e.g. ``12ms``, ``3.916s``."""

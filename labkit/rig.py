@@ -414,6 +414,10 @@ def load_rig(path: str | Path) -> Rig:
         raise ConfigError(f"rig file {path} does not exist; see rigs/ for examples") from None
     except OSError as error:
         raise ConfigError(f"rig file {path} cannot be read: {error.strerror}") from None
+    except UnicodeDecodeError:
+        raise ConfigError(
+            f"rig file {path} is not UTF-8 text (is it a binary file?); give a YAML rig file"
+        ) from None
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as error:

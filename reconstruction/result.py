@@ -30,6 +30,7 @@ from labkit.io import (
     write_spectral_exr,
     write_text_atomic,
 )
+from labkit.io.output_folder import staged_output_folder
 from reconstruction.image_formation import LatentSpace
 
 
@@ -114,13 +115,15 @@ def save_reconstruction(
     provenance: dict[str, Any] | None = None,
     log: dict[str, Any] | None = None,
 ) -> dict[str, Path]:
-    """Write `result` into the folder `out` (created if missing); returns the paths by name.
+    """Write `result` into the folder `out` as one set; returns the paths by name.
 
     Parameters
     ----------
     result : Reconstruction
     out : str or Path
-        Output folder; files of the same names are replaced.
+        Output folder: absent, empty, or written by an earlier labkit run, which is
+        replaced as a whole (:func:`labkit.io.output_folder.staged_output_folder`); a
+        failed or interrupted save leaves it as it was.
     provenance : dict, optional
         Where the input came from (e.g. ``command``, ``input``, ``raw``, ``rig``,
         ``response``, ``dispersion_model``), added to the options the result records in
@@ -134,29 +137,28 @@ def save_reconstruction(
         ``spectral`` (spectral latent space only), ``raw_colour``, ``preview``, ``log``.
     """
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     header = file_header(result, provenance)
-    paths: dict[str, Path] = {}
-    if result.wavelengths_nm is not None:
-        paths["spectral"] = out / "spectral.exr"
-        image = result.spectral_image(provenance=provenance)
-        write_spectral_exr(paths["spectral"], image)
-        preview = spectral_preview(image.cube, image.wavelengths_nm)
-    else:
-        preview = to_display(np.maximum(result.raw_colour, 0), max_side=None)
-    paths["raw_colour"] = out / "raw_colour.exr"
-    write_rgb_exr(paths["raw_colour"], result.raw_colour, {**header, "units": "raw units"})
-    paths["preview"] = out / "preview.png"
-    write_png(paths["preview"], preview)
-    paths["log"] = out / "log.json"
-    document = {
-        **header,
-        **(log or {}),
-        "outputs": {name: path.name for name, path in paths.items()},
-        **result.log,
-    }
-    text = json.dumps(to_plain(document), indent=2, ensure_ascii=False) + "\n"
-    write_text_atomic(paths["log"], text)
+    names: dict[str, str] = {}
+    command = str((provenance or {}).get("command") or "labkit reconstruct (Python)")
+    with staged_output_folder(out, command=command) as stage:
+        if result.wavelengths_nm is not None:
+            names["spectral"] = "spectral.exr"
+            image = result.spectral_image(provenance=provenance)
+            write_spectral_exr(stage / names["spectral"], image)
+            preview = spectral_preview(image.cube, image.wavelengths_nm)
+        else:
+            preview = to_display(np.maximum(result.raw_colour, 0), max_side=None)
+        names["raw_colour"] = "raw_colour.exr"
+        write_rgb_exr(
+            stage / names["raw_colour"], result.raw_colour, {**header, "units": "raw units"}
+        )
+        names["preview"] = "preview.png"
+        write_png(stage / names["preview"], preview)
+        names["log"] = "log.json"
+        document = {**header, **(log or {}), "outputs": dict(names), **result.log}
+        text = json.dumps(to_plain(document), indent=2, ensure_ascii=False) + "\n"
+        write_text_atomic(stage / names["log"], text)
+    paths = {name: out / file for name, file in names.items()}
     return paths
 
 

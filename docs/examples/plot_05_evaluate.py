@@ -46,7 +46,7 @@ for name, rig in rigs.items():
     session, _ = Session.open_for(out / name, rig)
     with open_hardware(rig, fast=True) as hardware:
         Engine(rig, hardware.camera, hardware.slider, hardware.stage, session).run()
-    run_hdr(out / name, out / "hdr", previews=False)
+run_hdr([out / name for name in rigs], out / "hdr", previews=False)  # one folder, one set
 disks = load_scene_hdr(out / "hdr", "disks")
 bands = filter_bands(rigs["calibration"], images=disks)
 spectral_model = calibrate_dispersion(

@@ -1,4 +1,4 @@
-"""``labkit hdr SESSION --out DIR``: merge a session's exposure brackets into HDR raw EXRs."""
+"""``labkit hdr SESSION [SESSION …] --out DIR``: merge exposure brackets into HDR raw EXRs."""
 
 from __future__ import annotations
 
@@ -11,16 +11,29 @@ def register(commands: argparse._SubParsersAction) -> None:
     parser = commands.add_parser(
         "hdr",
         help="merge exposure brackets into HDR raw mosaics (thesis Algorithm 11)",
-        description="For every scene × illumination of a capture session: average the "
+        description="For every scene × illumination of one or more capture sessions: average the "
         "replicates, subtract the mean dark frame of each exposure, fit the scaling factor "
         "between consecutive exposures (first principal component of pixels within 2–95 %% "
         "of saturation in both), blend, and write OUT/<scene>/<illumination>.exr (float32 "
         "'raw' as a fraction of saturation at the shortest exposure; 'variance' with "
         "--method noise), a PNG preview, and OUT/hdr.yaml with the scaling factors against "
-        "the exposure-time ratios.",
+        "the exposure-time ratios. The folder is written as one set (OUT/labkit-run.json lists "
+        "its files and checksums): an interrupted run leaves the previous folder untouched, "
+        "and a second run into the same folder is refused while one is writing. Every frame "
+        "is checked against the checksum recorded at capture.",
     )
-    parser.add_argument("session", type=Path, help="capture session folder")
-    parser.add_argument("--out", type=Path, required=True, help="output folder")
+    parser.add_argument(
+        "session",
+        type=Path,
+        nargs="+",
+        help="capture session folder(s), e.g. a calibration session and a session of scenes",
+    )
+    parser.add_argument(
+        "--out",
+        type=Path,
+        required=True,
+        help="output folder: new, empty, or from an earlier labkit run (replaced as a whole)",
+    )
     parser.add_argument(
         "--method",
         choices=("thesis", "noise"),
@@ -50,9 +63,11 @@ def register(commands: argparse._SubParsersAction) -> None:
 def _hdr(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from labkit.hdr import factor_table, plan_hdr, run_hdr
+    from labkit.hdr import factor_table, plan_sessions, run_hdr
+    from labkit.io.output_folder import check_output_folder
 
-    plan = plan_hdr(
+    check_output_folder(args.out)
+    plans = plan_sessions(
         args.session, scenes=args.scene, illuminations=args.illumination, no_dark=args.no_dark
     )
     reports = []
@@ -69,7 +84,9 @@ def _hdr(args: argparse.Namespace) -> int:
             text.extend(f"warning: {w}" for w in result.warnings)
         reports.append("\n".join(text))
 
-    with tqdm(total=plan.frame_count, unit="frame", desc="hdr", disable=args.no_progress) as bar:
+    with tqdm(
+        total=sum(p.frame_count for p in plans), unit="frame", desc="hdr", disable=args.no_progress
+    ) as bar:
         run = run_hdr(
             args.session,
             args.out,

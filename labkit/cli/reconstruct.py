@@ -5,7 +5,8 @@ RAW is any raw Bayer mosaic :func:`labkit.io.read_mosaic` reads: a raw EXR (from
 
 A thin layer over :func:`reconstruction.reconstruct`: every option is checked (and every
 input read) before any work starts or anything is written, then the spectral image, its
-raw colour, an sRGB preview and the log are written atomically into DIR.
+raw colour, an sRGB preview and the log are written into DIR as one set (DIR is replaced as
+a whole; an interrupted run leaves the previous DIR as it was).
 """
 
 from __future__ import annotations
@@ -13,7 +14,6 @@ from __future__ import annotations
 import argparse
 import itertools
 import math
-import os
 import sys
 import warnings
 from dataclasses import dataclass
@@ -220,7 +220,12 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="Dask scheduler for the patches: local threads (default), local processes, "
         "synchronous, or a dask.distributed scheduler's address",
     )
-    parser.add_argument("--out", type=Path, required=True, help="output folder (created)")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        required=True,
+        help="output folder: new, empty, or from an earlier labkit run (replaced as a whole)",
+    )
     parser.add_argument(
         "--quiet", action="store_true", help="no progress bar (it is off anyway off a terminal)"
     )
@@ -237,9 +242,16 @@ class _Job:
 
 
 def _reconstruct(args: argparse.Namespace) -> int:
-    import time
+    from labkit.io.output_folder import writer_lock
 
     job = _prepare(args)
+    with writer_lock(args.out, command="labkit reconstruct"):  # refuse a second writer now
+        return _run(args, job)
+
+
+def _run(args: argparse.Namespace, job: _Job) -> int:
+    import time
+
     started = time.perf_counter()
     bar = _ProgressBar(enabled=not args.quiet and sys.stderr.isatty())
     if bar.enabled and args.weights.startswith("auto:"):
@@ -300,6 +312,9 @@ def _prepare(args: argparse.Namespace) -> _Job:
             f"raw image {args.raw} does not exist; give a raw Bayer mosaic (raw EXR, "
             "single-channel TIFF/PNG or camera raw file)"
         )
+    from labkit.io.output_folder import verify_output_file
+
+    verify_output_file(args.raw, what="raw image")
     rig = None
     if args.rig is not None:
         from labkit.rig import load_rig
@@ -440,14 +455,10 @@ def _check_weights(text: str) -> None:
 
 
 def _check_out(out: Path) -> None:
-    """The output folder can be created (or is a folder); nothing is created here."""
-    if out.exists() and not out.is_dir():
-        raise ConfigError(f"--out {out} exists and is not a folder; choose a folder")
-    existing = out
-    while not existing.exists() and existing.parent != existing:
-        existing = existing.parent
-    if existing.exists() and (not existing.is_dir() or not os.access(existing, os.W_OK)):
-        raise ConfigError(f"--out {out}: cannot create files under {existing}; choose another")
+    """The output folder can be written (:func:`check_output_folder`); nothing is created."""
+    from labkit.io.output_folder import check_output_folder
+
+    check_output_folder(out)
 
 
 def _response(source: str, where: str) -> Any:

@@ -18,7 +18,15 @@ from labkit.hdr.merge import (
 )
 from labkit.hdr.noise import NoiseEstimator, NoiseModel
 from labkit.hdr.scaling import PairFactor, fit_pair_factor
-from labkit.hdr.session import HDRJob, HDRPlan, HDRRun, factor_table, plan_hdr, run_hdr
+from labkit.hdr.session import (
+    HDRJob,
+    HDRPlan,
+    HDRRun,
+    factor_table,
+    plan_hdr,
+    plan_sessions,
+    run_hdr,
+)
 from labkit.hdr.stack import ExposureInput, FrameSource, FrameStats, accumulate
 from labkit.hdr.weights import blend_weight, bloom_weight, local_weight
 
@@ -45,5 +53,6 @@ __all__ = [
     "local_weight",
     "merge_exposures",
     "plan_hdr",
+    "plan_sessions",
     "run_hdr",
 ]

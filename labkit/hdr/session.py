@@ -8,7 +8,9 @@ image still needs it.
 
 Outputs (``OUT/``): ``<scene>/<illumination>.exr`` (float32 ``raw`` [+ ``variance``]),
 ``<scene>/<illumination>.png`` (preview) and ``hdr.yaml`` (index: scaling factors against
-the exposure-time ratios, noise model, warnings).
+the exposure-time ratios, noise model, warnings), written as one set with a run manifest
+(:mod:`labkit.io.output_folder`). Every frame is checked against the sha256 and size its
+manifest record holds as it is read.
 """
 
 from __future__ import annotations
@@ -33,7 +35,9 @@ from labkit.frame import DARK, exposure_label
 from labkit.hdr.merge import DarkFrame, HDRResult, SensorLevels, merge_exposures
 from labkit.hdr.stack import ExposureInput, FrameSource
 from labkit.io.atomic import write_text_atomic
+from labkit.io.digest import read_verified
 from labkit.io.exr import RawImage, write_raw_exr
+from labkit.io.output_folder import staged_output_folder
 from labkit.io.preview import raw_preview, write_png
 from labkit.io.tiff import json_default, read_raw_tiff
 from labkit.session import Session
@@ -89,6 +93,7 @@ class HDROutput:
     result: HDRResult
     exr: Path
     preview: Path | None
+    session: Path | None = None
 
 
 @dataclass
@@ -111,8 +116,12 @@ def plan_hdr(
     scenes: Sequence[str] | None = None,
     illuminations: Sequence[str] | None = None,
     no_dark: bool = False,
+    allow_empty: bool = False,
 ) -> HDRPlan:
     """Group a session's frames into merge jobs and check them.
+
+    With `allow_empty`, a session with no lit frame matching `scenes` / `illuminations`
+    gives a plan without jobs instead of an error (one of several sessions merged together).
 
     Raises
     ------
@@ -167,7 +176,7 @@ def plan_hdr(
         ]
         band = rig.filter_for(illumination) if illumination != DARK else None
         jobs.append(HDRJob(scene, illumination, band.centre_nm if band else None, exposures))
-    if not jobs:
+    if not jobs and not allow_empty:
         wanted = ", ".join([*(scenes or []), *(illuminations or [])])
         raise DataError(
             f"session {folder} has no lit frames" + (f" for {wanted}" if wanted else "")
@@ -192,7 +201,7 @@ def plan_hdr(
 
 @fixed_blas_threads
 def run_hdr(
-    session_dir: str | Path,
+    session_dir: str | Path | Sequence[str | Path],
     out_dir: str | Path,
     *,
     method: str = "thesis",
@@ -203,14 +212,18 @@ def run_hdr(
     on_frame: Callable[[], None] | None = None,
     on_image: Callable[[HDROutput], None] | None = None,
 ) -> HDRRun:
-    """Merge every (scene, illumination) of a session into ``out_dir``.
+    """Merge every (scene, illumination) of one or more sessions into ``out_dir``.
 
     Parameters
     ----------
-    session_dir : path
-        A capture session (``labkit capture --session``).
+    session_dir : path or sequence of paths
+        Capture sessions (``labkit capture --session``), e.g. a calibration session and a
+        session of scenes; each image's darks come from its own session, and a
+        (scene, illumination) may come from only one of them.
     out_dir : path
-        Output folder (created); existing images of the same names are replaced.
+        Output folder: absent, empty, or written by an earlier labkit run, which this run
+        replaces as a whole (:func:`labkit.io.output_folder.staged_output_folder`): a run
+        that fails or is interrupted leaves the previous folder as it was.
     method : {"thesis", "noise"}
         Blending weights, see :mod:`labkit.hdr.merge`.
     no_dark : bool
@@ -222,9 +235,90 @@ def run_hdr(
     on_frame, on_image : callable or None
         Progress callbacks: after each frame read, after each image written.
     """
-    plan = plan_hdr(session_dir, scenes=scenes, illuminations=illuminations, no_dark=no_dark)
+    plans = plan_sessions(session_dir, scenes=scenes, illuminations=illuminations, no_dark=no_dark)
     out = Path(out_dir)
     run = HDRRun(out, method)
+    details = {"sessions": [str(plan.session) for plan in plans], "method": method}
+    with staged_output_folder(out, command="labkit hdr", details=details) as stage:
+        for plan in plans:
+            _merge_plan(plan, stage, run, previews=previews, on_frame=on_frame, on_image=on_image)
+        index = json.loads(json.dumps(_index(plans, run), default=json_default))  # plain types
+        write_text_atomic(stage / INDEX_FILE, yaml.safe_dump(index, sort_keys=False))
+    return run
+
+
+def plan_sessions(
+    session_dirs: str | Path | Sequence[str | Path],
+    *,
+    scenes: Sequence[str] | None = None,
+    illuminations: Sequence[str] | None = None,
+    no_dark: bool = False,
+) -> list[HDRPlan]:
+    """:func:`plan_hdr` of one or more sessions, checked to merge into one folder.
+
+    Raises
+    ------
+    DataError
+        As :func:`plan_hdr`; no session has a lit frame to merge; two sessions hold the
+        same (scene, illumination); the same session is given twice.
+    """
+    folders = [session_dirs] if isinstance(session_dirs, str | Path) else list(session_dirs)
+    if not folders:
+        raise DataError("no session to merge; give at least one session folder")
+    seen_folders: dict[str, Path] = {}
+    for folder in map(Path, folders):
+        real = str(folder.resolve())
+        if real in seen_folders:
+            raise DataError(f"session {folder} is given twice; give each session once")
+        seen_folders[real] = folder
+    many = len(folders) > 1
+    plans = [
+        plan_hdr(
+            folder,
+            scenes=scenes,
+            illuminations=illuminations,
+            no_dark=no_dark,
+            allow_empty=many,
+        )
+        for folder in folders
+    ]
+    owner: dict[tuple[str, str], Path] = {}
+    for plan in plans:
+        if (plan.shape, plan.cfa) != (plans[0].shape, plans[0].cfa):
+            raise DataError(
+                f"session {plan.session} has {plan.shape[0]}×{plan.shape[1]} {plan.cfa} frames "
+                f"but session {plans[0].session} has {plans[0].shape[0]}×{plans[0].shape[1]} "
+                f"{plans[0].cfa}; merge sessions of one camera mode into one folder"
+            )
+        for job in plan.jobs:
+            key = (job.scene, job.illumination)
+            if key in owner:
+                raise DataError(
+                    f"{job.name} is in both session {owner[key]} and session {plan.session}; "
+                    "one HDR folder holds one image of each scene × illumination: merge them "
+                    "into separate --out folders, or pick one with --scene / --illumination"
+                )
+            owner[key] = plan.session
+    if not owner:
+        wanted = ", ".join([*(scenes or []), *(illuminations or [])])
+        raise DataError(
+            f"sessions {', '.join(map(str, folders))} have no lit frames"
+            + (f" for {wanted}" if wanted else "")
+        )
+    return [plan for plan in plans if plan.jobs]
+
+
+def _merge_plan(
+    plan: HDRPlan,
+    stage: Path,
+    run: HDRRun,
+    *,
+    previews: bool,
+    on_frame: Callable[[], None] | None,
+    on_image: Callable[[HDROutput], None] | None,
+) -> None:
+    """Merge the jobs of one session's plan into the staging folder."""
+    out, method, no_dark = run.out, run.method, plan.no_dark
     library = _DarkLibrary(plan, on_frame)
     for job in plan.jobs:
         result = merge_exposures(
@@ -237,9 +331,9 @@ def run_hdr(
         )
         if no_dark:
             result.warnings.append("no dark frames subtracted (--no-dark): only the black level")
-        exr = out / job.scene / f"{job.illumination}.exr"
+        name = Path(job.scene) / f"{job.illumination}.exr"
         write_raw_exr(
-            exr,
+            stage / name,
             RawImage(
                 raw=result.raw,
                 cfa=plan.cfa,
@@ -252,18 +346,15 @@ def run_hdr(
         )
         preview = None
         if previews:
-            preview = exr.with_suffix(".png")
+            preview = out / name.with_suffix(".png")
             write_png(
-                preview,
+                stage / name.with_suffix(".png"),
                 raw_preview(result.raw, plan.cfa, white_balance=job.wavelength_nm is None),
             )
-        output = HDROutput(job, result, exr, preview)
+        output = HDROutput(job, result, out / name, preview, plan.session)
         run.outputs.append(output)
         if on_image is not None:
             on_image(output)
-    index = json.loads(json.dumps(_index(plan, run), default=json_default))  # plain types
-    write_text_atomic(run.index, yaml.safe_dump(index, sort_keys=False))
-    return run
 
 
 def factor_table(result: HDRResult) -> str:
@@ -315,15 +406,25 @@ def _by_replicate(records: list[dict]) -> list[dict]:
 def _source(folder: Path, record: dict, levels: SensorLevels) -> FrameSource:
     path = folder / record["file"]
     name = f"frame {record['key']} ({path})"
+    fix = (
+        f"`labkit session show {folder} --verify` lists damaged frames and resuming the "
+        "capture re-takes them"
+    )
 
     def load() -> np.ndarray:
         try:
-            image = read_raw_tiff(path)[0]
+            data = read_verified(path, sha256=record["sha256"], size=record.get("bytes"), name=name)
         except DataError as error:
+            raise DataError(f"{error}; {fix}") from None
+        try:
+            image = read_raw_tiff(path, data=data)[0]
+        except DataError as error:
+            raise DataError(f"{name}: {error}; {fix}") from None
+        if image.shape != tuple(record["shape"]):
             raise DataError(
-                f"{name}: {error}; `labkit session show {folder} --verify` lists damaged "
-                "frames and resuming the capture re-takes them"
-            ) from None
+                f"{name} is {image.shape[0]}×{image.shape[1]} but its record says "
+                f"{record['shape'][0]}×{record['shape'][1]}; {fix}"
+            )
         return _checked(image, levels, name)
 
     return FrameSource(name, load)
@@ -410,18 +511,21 @@ def _provenance(plan: HDRPlan, job: HDRJob, result: HDRResult) -> dict[str, Any]
     }
 
 
-def _index(plan: HDRPlan, run: HDRRun) -> dict[str, Any]:
+def _index(plans: list[HDRPlan], run: HDRRun) -> dict[str, Any]:
+    first = plans[0]
     return {
         "format": 1,
-        "session": str(plan.session),
+        "session": str(first.session) if len(plans) == 1 else None,
+        "sessions": [str(plan.session) for plan in plans],
         "method": run.method,
-        "cfa": plan.cfa,
-        "shape": list(plan.shape),
+        "cfa": first.cfa,
+        "shape": list(first.shape),
         "software": f"labkit {labkit.__version__}",
         "images": [
             {
                 "scene": o.job.scene,
                 "illumination": o.job.illumination,
+                "session": str(o.session),
                 "wavelength_nm": o.job.wavelength_nm,
                 "file": str(o.exr.relative_to(run.out)),
                 "reference_exposure_s": o.result.reference_exposure_s,

@@ -58,6 +58,11 @@ def _read_umask() -> int:
 _UMASK = _read_umask()
 
 
+def process_umask() -> int:
+    """The process umask as read at import (for giving files and folders the usual mode)."""
+    return _UMASK
+
+
 def fsync_directory(folder: str | Path) -> None:
     """Make a rename or new entry in `folder` durable."""
     fd = os.open(folder, os.O_RDONLY)

@@ -51,14 +51,18 @@ def write_raw_tiff(
         temp.write_bytes(data)
 
 
-def read_raw_tiff(path: str | Path) -> tuple[np.ndarray, dict[str, Any]]:
+def read_raw_tiff(
+    path: str | Path, *, data: bytes | None = None
+) -> tuple[np.ndarray, dict[str, Any]]:
     """Read a raw TIFF written by :func:`write_raw_tiff` (or any 2-D grey TIFF).
 
-    Returns the image and the labkit metadata ({} if absent).
+    Returns the image and the labkit metadata ({} if absent). With `data`, the file's
+    bytes already read (and checked, :func:`labkit.io.digest.read_verified`) are decoded
+    instead of reading `path`, which then only names the file in messages.
     """
     path = Path(path)
     try:
-        with tifffile.TiffFile(path) as tif:
+        with tifffile.TiffFile(path if data is None else io.BytesIO(data)) as tif:
             image = tif.asarray()
             description = tif.pages.first.description or ""
     except FileNotFoundError:

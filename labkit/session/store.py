@@ -13,19 +13,21 @@ from __future__ import annotations
 import datetime as dt
 import hashlib
 import json
+import math
 import os
 import threading
 from collections.abc import Callable, Iterable
 from concurrent.futures import Future, ThreadPoolExecutor
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 import yaml
 
 import labkit
 from labkit.errors import ConfigError, DataError
-from labkit.frame import Frame, FrameKey
+from labkit.frame import Frame, FrameKey, path_name_problem
 from labkit.io.atomic import atomic_path, fsync_directory, write_text_atomic
+from labkit.io.digest import file_sha256
 from labkit.io.tiff import encode_raw_tiff, json_default
 from labkit.rig import Rig, rig_from_dict
 
@@ -67,13 +69,8 @@ def first_difference(old: Any, new: Any, path: str = "") -> str | None:
     return None if old == new else f"{path}: {old!r} → {new!r}"
 
 
-def sha256_file(path: Path) -> str:
-    """sha256 of a file's bytes (hex)."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        while chunk := handle.read(1 << 22):
-            digest.update(chunk)
-    return digest.hexdigest()
+sha256_file = file_sha256
+"""sha256 of a file's bytes (hex): :func:`labkit.io.digest.file_sha256`."""
 
 
 class Session:
@@ -125,8 +122,19 @@ class Session:
             )
 
     @classmethod
-    def open(cls, folder: str | Path) -> Session:
-        """Open an existing session (a torn last manifest line is dropped)."""
+    def open(cls, folder: str | Path, *, repair: bool = False) -> Session:
+        """Open an existing session.
+
+        A torn last manifest line (a crash mid-append) is skipped; with `repair` (a writer
+        about to append) it is also cut off the file. Without `repair` nothing is written.
+
+        Raises
+        ------
+        DataError
+            Not a session, or a damaged ``session.yaml`` or manifest record (unreadable,
+            missing or mistyped keys, a frame file outside ``frames/``, a name that is
+            not a plain file name).
+        """
         folder = Path(folder)
         path = folder / SESSION_FILE
         if not path.is_file():
@@ -135,9 +143,11 @@ class Session:
                 "pass the folder given to `labkit capture --session`"
             )
         try:
-            info = yaml.safe_load(path.read_text())
-        except yaml.YAMLError as error:
+            info = yaml.safe_load(path.read_text(encoding="utf-8"))
+        except (yaml.YAMLError, UnicodeDecodeError) as error:
             raise DataError(f"{path} is not valid YAML ({error}); the session is damaged") from None
+        except OSError as error:
+            raise DataError(f"{path} cannot be read ({error.strerror})") from None
         if not isinstance(info, dict) or info.get("kind") != "labkit-session":
             raise DataError(f"{path} is not a labkit session file")
         if info.get("format") != SESSION_FORMAT:
@@ -145,7 +155,7 @@ class Session:
                 f"{path}: session format {info.get('format')!r} is not supported "
                 f"(this labkit reads format {SESSION_FORMAT})"
             )
-        return cls(folder, info, _read_manifest(folder / MANIFEST_FILE))
+        return cls(folder, info, _read_manifest(folder / MANIFEST_FILE, repair=repair))
 
     @classmethod
     def open_for(cls, folder: str | Path, rig: Rig, **facts: Any) -> tuple[Session, bool]:
@@ -157,7 +167,7 @@ class Session:
         folder = Path(folder)
         if not (folder / SESSION_FILE).exists():
             return cls.create(folder, rig, **facts), False
-        session = cls.open(folder)
+        session = cls.open(folder, repair=True)
         snapshot = rig_snapshot(rig)
         if session.info.get("plan_fingerprint") != plan_fingerprint(snapshot):
             change = first_difference(session.info.get("rig", {}), snapshot) or "the rig differs"
@@ -381,16 +391,22 @@ def key_of(record: dict[str, Any]) -> FrameKey:
     )
 
 
-def _read_manifest(path: Path) -> dict[str, dict]:
+def _read_manifest(path: Path, *, repair: bool) -> dict[str, dict]:
+    """The records of ``frames.jsonl``; a torn last line (a crash mid-append) is skipped,
+    and cut off the file only when `repair` (a writer about to append)."""
     if not path.exists():
         return {}
-    data = path.read_bytes()
+    try:
+        data = path.read_bytes()
+    except OSError as error:
+        raise DataError(f"{path} cannot be read ({error.strerror})") from None
     lines = data.split(b"\n")
     if lines and lines[-1]:  # no trailing newline: the last append was torn by a crash
-        torn = len(data) - len(lines[-1])
-        with open(path, "r+b") as handle:
-            handle.truncate(torn)
-            os.fsync(handle.fileno())
+        if repair:
+            torn = len(data) - len(lines[-1])
+            with open(path, "r+b") as handle:
+                handle.truncate(torn)
+                os.fsync(handle.fileno())
         lines = lines[:-1]
     records: dict[str, dict] = {}
     for number, line in enumerate(lines, start=1):
@@ -398,13 +414,71 @@ def _read_manifest(path: Path) -> dict[str, dict]:
             continue
         try:
             record = json.loads(line)
-            records[record["key"]] = record
-        except (json.JSONDecodeError, KeyError, TypeError):
+        except (json.JSONDecodeError, UnicodeDecodeError):
+            record = None
+        if not isinstance(record, dict) or not isinstance(record.get("key"), str):
             raise DataError(
                 f"{path} line {number} is not a frame record; the manifest is damaged "
                 "(restore it from a backup, or delete that line to re-capture the frame)"
-            ) from None
+            )
+        problem = record_problem(record, path.parent)
+        if problem:
+            raise DataError(
+                f"{path} line {number} (frame {record['key']!r}): {problem}; the manifest is "
+                "damaged or was edited (restore it from a backup, or delete that line to "
+                "re-capture the frame)"
+            )
+        records[record["key"]] = record
     return records
+
+
+_RECORD_TYPES: dict[str, tuple[type, ...]] = {
+    "illumination": (str,),
+    "exposure_s": (int, float),
+    "replicate": (int,),
+    "dark": (bool,),
+    "pixel_format": (str,),
+    "shape": (list,),
+    "file": (str,),
+    "sha256": (str,),
+}
+
+
+def record_problem(record: dict[str, Any], folder: Path) -> str | None:
+    """What is wrong with a manifest record (missing or mistyped keys, names or a file
+    that would leave the session folder), or None."""
+    for name, types in _RECORD_TYPES.items():
+        value = record.get(name)
+        if not isinstance(value, types) or (bool in types) != isinstance(value, bool):
+            return f"key {name!r} is {value!r}, expected {' or '.join(t.__name__ for t in types)}"
+    if not math.isfinite(record["exposure_s"]) or record["exposure_s"] <= 0:
+        return f"exposure_s {record['exposure_s']!r} is not a positive number of seconds"
+    shape = record["shape"]
+    if len(shape) != 2 or not all(isinstance(n, int) and n > 0 for n in shape):
+        return f"shape {shape!r} is not [rows, cols]"
+    if len(record["sha256"]) != 64:
+        return "sha256 is not 64 hex digits"
+    size = record.get("bytes")
+    if size is not None and (not isinstance(size, int) or size < 0):
+        return f"bytes {size!r} is not a file size"
+    names = [("illumination", record["illumination"])]
+    if not record["dark"]:
+        names.append(("scene", record.get("scene")))
+    for what, name in names:
+        why = path_name_problem(name)
+        if why:
+            return f"{what} {name!r} cannot name a file: {why}"
+    file = record["file"]
+    relative = PurePosixPath(file)
+    if (
+        relative.is_absolute()
+        or "\\" in file
+        or ".." in relative.parts
+        or not file.startswith("frames/")
+        or not (folder / relative).resolve().is_relative_to(folder.resolve())
+    ):
+        return f"file {file!r} is not a path inside the session's frames/ folder"
+    return None
 
 
 def _record_line(record: dict[str, Any]) -> str:

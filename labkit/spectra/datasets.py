@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import csv
 import functools
+import io
 from importlib import resources
 from pathlib import Path
 
@@ -80,15 +81,23 @@ def camera_response(source: str | Path) -> Spectra:
 def _read_response_csv(path: Path) -> Spectra:
     if not path.is_file():
         raise DataError(f"camera response file {path} does not exist")
-    with path.open(newline="") as handle:
-        reader = csv.reader(handle)
-        header = [cell.strip() for cell in next(reader, [])]
-        if header != ["wavelength_nm", "R", "G", "B"]:
-            raise DataError(f"{path}: header is {header}; expected wavelength_nm,R,G,B")
-        try:
-            rows = np.array([[float(cell) for cell in row] for row in reader if row])
-        except ValueError as error:
-            raise DataError(f"{path}: non-numeric value ({error})") from None
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as error:
+        raise DataError(
+            f"camera response file {path} cannot be read as text ({error}); give a CSV file "
+            "wavelength_nm,R,G,B"
+        ) from None
+    reader = csv.reader(io.StringIO(text, newline=""))
+    header = [cell.strip() for cell in next(reader, [])]
+    if header != ["wavelength_nm", "R", "G", "B"]:
+        raise DataError(f"{path}: header is {header}; expected wavelength_nm,R,G,B")
+    try:
+        rows = np.array([[float(cell) for cell in row] for row in reader if row])
+    except ValueError as error:
+        raise DataError(f"{path}: non-numeric value or ragged row ({error})") from None
+    if rows.size and not np.all(np.isfinite(rows)):
+        raise DataError(f"{path}: values must be finite numbers (found NaN or Inf)")
     if rows.ndim != 2 or rows.shape[0] < 2:
         raise DataError(f"{path}: needs at least two rows of wavelength_nm,R,G,B")
     if np.any(rows[:, 1:] < 0):

@@ -15,6 +15,7 @@ from PIL import Image
 from labkit.cfa import mosaic
 from labkit.cli import build_parser, main
 from labkit.io import RawImage, SpectralImage, read_spectral_exr, write_raw_exr, write_spectral_exr
+from labkit.io.output_folder import RUN_MANIFEST
 from labkit.spectra import camera_response
 from labkit.spectra.datasets import write_response_csv
 from reconstruction import PRIORS
@@ -224,7 +225,8 @@ def test_colour_latent_writes_no_spectral_image(inputs, tmp_path: Path) -> None:
     args = ["reconstruct", str(inputs["grey"]), "--latent", "colour", "--weights", "fixed:0.01",
             "--patch-px", "32", "--out", str(out)]  # fmt: skip
     assert main(args) == 0
-    assert sorted(p.name for p in out.iterdir()) == ["log.json", "preview.png", "raw_colour.exr"]
+    names = sorted(p.name for p in out.iterdir())
+    assert names == ["labkit-run.json", "log.json", "preview.png", "raw_colour.exr"]
     np.testing.assert_allclose(
         _read_rgb_exr(out / "raw_colour.exr"), np.broadcast_to(GREY, (*SHAPE, 3)), rtol=1e-3
     )
@@ -430,7 +432,8 @@ def test_the_python_api_writes_what_the_cli_writes(inputs, tmp_path: Path) -> No
         patch_px=32,
     )
     paths = result.save(api_out)
-    assert sorted(p.name for p in cli_out.iterdir()) == sorted(p.name for p in paths.values())
+    written = sorted([RUN_MANIFEST, *(p.name for p in paths.values())])
+    assert sorted(p.name for p in cli_out.iterdir()) == written
     cli_cube = read_spectral_exr(cli_out / "spectral.exr")
     api_cube = read_spectral_exr(api_out / "spectral.exr")
     np.testing.assert_allclose(api_cube.cube, cli_cube.cube, rtol=1e-5, atol=1e-7)

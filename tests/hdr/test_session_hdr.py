@@ -18,7 +18,7 @@ from labkit.io import read_raw_exr, read_raw_tiff
 from labkit.protocol import Engine
 from labkit.protocol.hardware import open_hardware
 from labkit.rig import load_rig
-from labkit.session import Session
+from labkit.session import Session, sha256_file
 from labkit.sim import SimulatedRig
 
 HDR_PLAN = {
@@ -164,15 +164,22 @@ def test_mismatched_sizes_and_cfa_are_refused(session_copy, tmp_path):
 
 
 def test_frame_of_wrong_size_on_disk_is_named(session_copy, tmp_path):
-    from labkit.hdr import run_hdr
+    from labkit.hdr import plan_hdr, run_hdr
     from labkit.io import write_raw_tiff
 
     session = Session.open(session_copy)
     record = next(r for r in session.records.values() if r["replicate"] == 2 and not r["dark"])
     image, meta = read_raw_tiff(session_copy / record["file"])
     write_raw_tiff(session_copy / record["file"], image[:32], meta)
-    with pytest.raises(DataError, match=rf"{record['key']}.*32×96 .* 64×96"):
+    size = (session_copy / record["file"]).stat().st_size
+    with pytest.raises(DataError, match=rf"{record['key']}.* is {size} bytes but .* recorded"):
         run_hdr(session_copy, tmp_path / "out", illuminations=[record["illumination"]])
+    assert not (tmp_path / "out").exists()  # nothing written
+    # a record that lies about the shape of a frame that matches its checksum
+    record.update(shape=[32, 96], sha256=sha256_file(session_copy / record["file"]), bytes=size)
+    session.forget([])
+    with pytest.raises(DataError, match=rf"{record['key']}.*32×96 .* 64×96"):
+        plan_hdr(session_copy)
 
 
 def test_cli_prints_the_factor_table_and_one_line_errors(captured, tmp_path, capsys):
@@ -186,3 +193,133 @@ def test_cli_prints_the_factor_table_and_one_line_errors(captured, tmp_path, cap
     status = main(["hdr", str(tmp_path / "nowhere"), "--out", str(out), "--no-progress"])
     error = capsys.readouterr().err
     assert status == 2 and error.count("\n") == 1 and "not a labkit session" in error
+
+
+# -- a run is one set; frames are verified; session contents stay inside the session --------
+def _fingerprint(folder: Path) -> dict[str, bytes]:
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in folder.rglob("*.*")}
+
+
+def test_an_interrupted_rerun_leaves_the_previous_complete_set(captured, tmp_path):
+    from calibration import load_filtered_hdr
+    from labkit.hdr import run_hdr
+
+    _, session = captured
+    out = tmp_path / "hdr"
+    run_hdr(session.folder, out, method="noise", previews=False)
+    before = _fingerprint(out)
+
+    def interrupt(output) -> None:
+        raise KeyboardInterrupt  # Ctrl-C after the first image of the thesis rerun
+
+    with pytest.raises(KeyboardInterrupt):
+        run_hdr(session.folder, out, method="thesis", previews=False, on_image=interrupt)
+    assert _fingerprint(out) == before
+    assert yaml.safe_load((out / "hdr.yaml").read_text())["method"] == "noise"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["hdr"]  # no staging, no lock left
+    assert set(load_filtered_hdr(out)) == {"colorchecker"}
+
+
+def test_a_mixed_hdr_folder_is_refused_by_its_readers(captured, tmp_path):
+    from calibration import load_filtered_hdr
+    from labkit.hdr import run_hdr
+
+    _, session = captured
+    out = tmp_path / "hdr"
+    run_hdr(session.folder, out, previews=False)
+    stray = out / "colorchecker" / "600.exr"
+    shutil.copy(out / "colorchecker" / "550.exr", stray)
+    with pytest.raises(DataError, match=r"mixes files of different runs: colorchecker/600.exr"):
+        load_filtered_hdr(out)
+    stray.unlink()
+    (out / "colorchecker" / "550.exr").write_bytes(b"truncated")
+    with pytest.raises(DataError, match=r"550.exr has changed size"):
+        load_filtered_hdr(out)
+
+
+def test_two_sessions_merge_into_one_set_and_may_not_overlap(captured, tmp_path):
+    from labkit.hdr import run_hdr
+
+    _, session = captured
+    lit = tmp_path / "lit"
+    shutil.copytree(session.folder, lit)
+    _edit_manifest(lit, lambda lines: [r.update(scene="other") for r in lines if not r["dark"]])
+    run = run_hdr([session.folder, lit], tmp_path / "hdr", previews=False)
+    index = yaml.safe_load((tmp_path / "hdr" / "hdr.yaml").read_text())
+    assert sorted(o.job.name for o in run.outputs) == [
+        "colorchecker/550",
+        "colorchecker/unfiltered",
+        "other/550",
+        "other/unfiltered",
+    ]
+    assert index["sessions"] == [str(session.folder), str(lit)]
+    assert {i["session"] for i in index["images"] if i["scene"] == "other"} == {str(lit)}
+    with pytest.raises(DataError, match=r"is given twice"):
+        run_hdr([session.folder, session.folder.parent / "session" / "."], tmp_path / "again")
+    duplicate = tmp_path / "duplicate"
+    shutil.copytree(session.folder, duplicate)
+    with pytest.raises(DataError, match=r"colorchecker/550 is in both session"):
+        run_hdr([session.folder, duplicate], tmp_path / "again")
+    assert not (tmp_path / "again").exists()
+
+
+def test_a_bit_flipped_or_swapped_frame_is_refused(session_copy, tmp_path):
+    from labkit.hdr import run_hdr
+
+    session = Session.open(session_copy)
+    lit = [r for r in session.records.values() if r["illumination"] == "550"]
+    short, long = lit[0], next(r for r in lit if r["exposure_s"] != lit[0]["exposure_s"])
+    path = session_copy / short["file"]
+    data = bytearray(path.read_bytes())
+    data[-100] ^= 0x01
+    path.write_bytes(bytes(data))
+    with pytest.raises(DataError, match=rf"{short['key']} .*does not match its recorded sha256"):
+        run_hdr(session_copy, tmp_path / "out", illuminations=["550"])
+    shutil.copy(session_copy / long["file"], path)  # the longer exposure's frame in its place
+    with pytest.raises(DataError, match=rf"{short['key']} .*(sha256|bytes but)"):
+        run_hdr(session_copy, tmp_path / "out", illuminations=["550"])
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(
+    ("edit", "match"),
+    [
+        ({"file": "../../outside/x.tiff"}, "not a path inside the session's frames/"),
+        ({"file": "/etc/passwd"}, "not a path inside the session's frames/"),
+        ({"file": "frames/../../../etc/passwd"}, "not a path inside the session's frames/"),
+        ({"scene": "../../../escaped"}, "scene '../../../escaped' cannot name a file"),
+        ({"illumination": "a/b"}, "illumination 'a/b' cannot name a file"),
+        ({"exposure_s": "fast"}, "key 'exposure_s' is 'fast'"),
+        ({"exposure_s": -1.0}, "not a positive number"),
+        ({"replicate": True}, "key 'replicate' is True"),
+        ({"shape": [64]}, r"shape \[64\] is not"),
+        ({"sha256": None}, "key 'sha256' is None"),
+    ],
+)
+def test_hostile_or_malformed_records_are_refused_naming_the_line(
+    session_copy, tmp_path, edit, match
+):
+    from labkit.hdr import run_hdr
+
+    def hostile(lines):
+        lit = next(r for r in lines if not r["dark"])
+        lit.update(edit)
+
+    _edit_manifest(session_copy, hostile)
+    manifest = (session_copy / "frames.jsonl").read_bytes()
+    with pytest.raises(DataError, match=rf"frames.jsonl line \d+ .*{match}") as error:
+        run_hdr(session_copy, tmp_path / "out")
+    assert "root:" not in str(error.value)  # nothing of /etc/passwd was read
+    assert not (tmp_path / "out").exists() and not (tmp_path / "escaped").exists()
+    assert (session_copy / "frames.jsonl").read_bytes() == manifest  # a reader writes nothing
+
+
+def test_the_cli_refuses_an_output_folder_it_did_not_write(captured, tmp_path, capsys):
+    _, session = captured
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "thesis.pdf").write_text("precious")
+    status = main(["hdr", str(session.folder), "--out", str(out), "--no-progress"])
+    error = capsys.readouterr().err
+    assert status == 2 and "no labkit run wrote" in error and error.count("\n") == 1
+    assert sorted(p.name for p in out.iterdir()) == ["thesis.pdf"]

@@ -1,0 +1,475 @@
+"""A run's output folder, written as one unit by one writer at a time.
+
+A command that writes a set of files (``labkit hdr``, ``labkit reconstruct``, …) writes
+them into a hidden staging folder beside its output folder, adds a run manifest
+(``labkit-run.json``: the command, when, and every file's size and sha256) last, and then
+puts the staging folder in place of the output folder in one rename (Linux's
+``renameat2(RENAME_EXCHANGE)``; elsewhere two renames). A run that fails or is killed
+therefore leaves the previous complete set, or nothing: never some new files beside old
+ones. A killed run's staging folder is hidden and removed by the next run into the same
+folder.
+
+Only one writer may hold an output folder: an OS file lock (``flock``) on a hidden lock file
+beside it, which the kernel releases when its process dies, so a ``kill -9`` never leaves a
+stale lock. A second writer is refused at once with a message naming the holder.
+
+Readers call :func:`verify_output_folder`: a folder with a run manifest must match it, file
+by file; a folder without one was assembled by hand (e.g. images from another program) and
+is taken as it is.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import ctypes.util
+import datetime as dt
+import errno
+import fcntl
+import json
+import os
+import shutil
+import socket
+import tempfile
+import threading
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import labkit
+from labkit.errors import ConfigError, DataError
+from labkit.io.atomic import process_umask
+from labkit.io.digest import file_sha256
+
+RUN_MANIFEST = "labkit-run.json"
+"""Name of the run manifest inside an output folder."""
+
+MANIFEST_FORMAT = 1
+
+_STAGING = ".staging-"
+_HELD: dict[str, tuple[int, int]] = {}  # lock file → (fd, depth): reentrant in a process
+_HELD_GUARD = threading.Lock()
+
+
+# -- checking ------------------------------------------------------------------------------
+def check_output_folder(out: str | Path, *, option: str = "--out") -> Path:
+    """Raise unless `out` can become a run's output folder; nothing is created.
+
+    It can if it is absent (and its nearest existing parent is a writable folder), an empty
+    folder, or a folder that a labkit run wrote (it holds a run manifest): the run replaces
+    it as a whole.
+
+    Raises
+    ------
+    ConfigError
+        `out` is a file or a symbolic link, a folder holding files no labkit run wrote, or
+        cannot be created.
+    """
+    out = Path(out)
+    if out.is_symlink():
+        raise ConfigError(
+            f"{option} {out} is a symbolic link; give the folder it points to "
+            f"({os.path.realpath(out)}) or a new folder"
+        )
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"{option} {out} exists and is not a folder; choose a new folder")
+    if out.is_dir():
+        try:
+            entries = [p.name for p in out.iterdir()]
+        except OSError as error:
+            raise ConfigError(f"{option} {out} cannot be read ({error.strerror})") from None
+        if entries and RUN_MANIFEST not in entries:
+            raise ConfigError(
+                f"{option} {out} holds files that no labkit run wrote (no {RUN_MANIFEST}); a "
+                "run replaces its output folder as a whole, so choose a new folder or remove "
+                "this one"
+            )
+    existing = out.parent
+    while not existing.exists() and existing.parent != existing:
+        existing = existing.parent
+    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
+        raise ConfigError(
+            f"{option} {out}: cannot create files under {existing}; choose a writable place"
+        )
+    return out
+
+
+# -- locking -------------------------------------------------------------------------------
+def lock_file_of(target: str | Path) -> Path:
+    """The hidden lock file guarding `target` (beside it, since `target` itself is replaced)."""
+    target = Path(target)
+    parent = Path(os.path.realpath(target.parent))
+    return parent / f".{target.name}.lock"
+
+
+@contextlib.contextmanager
+def writer_lock(target: str | Path, *, command: str, option: str = "--out") -> Iterator[None]:
+    """Hold the only writer's lock of `target` (a file or folder) for the block.
+
+    Re-entrant within a process (a command may lock its output up front and its writer
+    lock it again). The lock is an ``flock`` on ``.<name>.lock`` beside `target`; the
+    kernel drops it when the process dies. The lock file is removed on release.
+
+    Raises
+    ------
+    ConfigError
+        Another process holds the lock: the message names it (pid, host, command, since).
+    """
+    path = lock_file_of(target)
+    key = str(path)
+    with _HELD_GUARD:
+        held = _HELD.get(key)
+        if held is not None:
+            _HELD[key] = (held[0], held[1] + 1)
+    if held is None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd = _acquire(path, target=Path(target), command=command, option=option)
+        with _HELD_GUARD:
+            _HELD[key] = (fd, 1)
+    try:
+        yield
+    finally:
+        with _HELD_GUARD:
+            fd, depth = _HELD[key]
+            if depth > 1:
+                _HELD[key] = (fd, depth - 1)
+            else:
+                del _HELD[key]
+                depth = 0
+        if depth == 0:
+            with contextlib.suppress(FileNotFoundError):
+                path.unlink()  # while still locked: a waiter re-checks the inode
+            os.close(fd)
+
+
+def _acquire(path: Path, *, target: Path, command: str, option: str) -> int:
+    """Open and ``flock`` the lock file; retries if it was replaced meanwhile."""
+    for _ in range(20):
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666)
+        except OSError as error:
+            raise ConfigError(
+                f"{option} {target}: cannot create its lock file {path} ({error.strerror}); "
+                "choose a writable place"
+            ) from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = _holder(fd)
+            os.close(fd)
+            raise ConfigError(
+                f"{option} {target} is being written by another labkit run ({holder}); wait "
+                "for it to finish or stop it, or choose another folder"
+            ) from None
+        try:
+            same = os.fstat(fd).st_ino == os.stat(path).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            info = {
+                "pid": os.getpid(),
+                "host": socket.gethostname(),
+                "command": command,
+                "since": _now(),
+            }
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, json.dumps(info).encode(), 0)
+            return fd
+        os.close(fd)  # the previous holder removed it after we opened it: take the new one
+    raise ConfigError(f"{option} {target}: its lock file {path} keeps changing; try again")
+
+
+def _holder(fd: int) -> str:
+    try:
+        info = json.loads(os.pread(fd, 4096, 0) or b"{}")
+        return f"pid {info['pid']} on {info['host']}, `{info['command']}`, since {info['since']}"
+    except (OSError, ValueError, KeyError, TypeError):
+        return "holder unknown"
+
+
+# -- staging and putting in place ------------------------------------------------------------
+@contextlib.contextmanager
+def staged_output_folder(
+    out: str | Path, *, command: str, option: str = "--out", details: dict[str, Any] | None = None
+) -> Iterator[Path]:
+    """Yield a hidden staging folder whose content replaces `out` as one set on success.
+
+    Write every output file into the yielded folder. When the block succeeds, a run
+    manifest (:data:`RUN_MANIFEST`) listing each file's size and sha256 is written last and
+    the staging folder takes `out`'s place in one rename; the previous content of `out` is
+    removed. When it fails (an exception, Ctrl-C), the staging folder is removed and `out`
+    is untouched. The block runs under :func:`writer_lock`.
+
+    Parameters
+    ----------
+    out : str or Path
+        The output folder (see :func:`check_output_folder` for what it may be).
+    command : str
+        What is writing (e.g. ``"labkit hdr"``), recorded in the manifest and the lock.
+    option : str
+        How the user named `out`, for messages.
+    details : dict, optional
+        Further facts for the manifest (e.g. the input's path).
+
+    Raises
+    ------
+    ConfigError
+        `out` cannot be an output folder, or another run is writing it.
+    DataError
+        The disk is full or the folder cannot be written: nothing was changed.
+    """
+    out = check_output_folder(out, option=option)
+    with writer_lock(out, command=command, option=option):
+        started = _now()
+        out.parent.mkdir(parents=True, exist_ok=True)
+        _remove_stale_staging(out)
+        staging = Path(tempfile.mkdtemp(prefix=f".{out.name}{_STAGING}", dir=out.parent))
+        try:
+            with _disk_errors(out, option):
+                yield staging
+                manifest = _manifest(staging, command=command, started=started, details=details)
+                text = json.dumps(manifest, indent=1, ensure_ascii=False) + "\n"
+                with open(staging / RUN_MANIFEST, "w", encoding="utf-8") as handle:
+                    handle.write(text)
+                    handle.flush()
+                    os.fsync(handle.fileno())
+                os.chmod(staging, 0o777 & ~process_umask())
+                _fsync(staging)
+                check_output_folder(out, option=option)  # unchanged while we worked?
+                old = _put_in_place(staging, out)
+        except BaseException:
+            shutil.rmtree(staging, ignore_errors=True)
+            raise
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+        _fsync(out.parent)
+
+
+def _put_in_place(staging: Path, out: Path) -> Path | None:
+    """Rename `staging` to `out`; returns where the previous `out` now is, if any."""
+    if not out.exists():
+        os.rename(staging, out)
+        return None
+    if _exchange(staging, out):
+        return staging
+    aside = Path(tempfile.mkdtemp(prefix=f".{out.name}{_STAGING}old-", dir=out.parent))
+    os.rename(out, aside / "old")
+    os.rename(staging, out)
+    return aside
+
+
+_RENAME_EXCHANGE = 2
+_AT_FDCWD = -100
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap two paths atomically (Linux ``renameat2``); False where it is not available."""
+    libc_name = ctypes.util.find_library("c")
+    if libc_name is None:
+        return False
+    libc = ctypes.CDLL(libc_name, use_errno=True)
+    renameat2 = getattr(libc, "renameat2", None)
+    if renameat2 is None:
+        return False
+    result = renameat2(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE)
+    if result == 0:
+        return True
+    code = ctypes.get_errno()
+    if code in (errno.ENOSYS, errno.EINVAL, errno.ENOTSUP):
+        return False  # the file system cannot exchange: fall back to two renames
+    raise OSError(code, os.strerror(code), str(b))
+
+
+def _remove_stale_staging(out: Path) -> None:
+    """Staging folders of killed runs into `out` (we hold its lock, so none is live)."""
+    for stale in out.parent.glob(f".{out.name}{_STAGING}*"):
+        shutil.rmtree(stale, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def _disk_errors(out: Path, option: str) -> Iterator[None]:
+    try:
+        yield
+    except OSError as error:
+        if error.errno in (errno.ENOSPC, errno.EDQUOT):
+            raise DataError(
+                f"{option} {out}: the disk is full ({error.strerror}); nothing was changed — "
+                "free some space and run the command again"
+            ) from None
+        if error.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+            raise DataError(
+                f"{option} {out}: cannot write ({error.strerror}: {error.filename}); nothing "
+                "was changed — choose a writable folder"
+            ) from None
+        raise
+
+
+def _manifest(
+    staging: Path, *, command: str, started: str, details: dict[str, Any] | None
+) -> dict[str, Any]:
+    files = {
+        path.relative_to(staging).as_posix(): {
+            "bytes": path.stat().st_size,
+            "sha256": file_sha256(path),
+        }
+        for path in sorted(staging.rglob("*"))
+        if path.is_file()
+    }
+    return {
+        "format": MANIFEST_FORMAT,
+        "kind": "labkit-run",
+        "run_id": uuid.uuid4().hex,
+        "command": command,
+        "software": f"labkit {labkit.__version__}",
+        "started": started,
+        "finished": _now(),
+        **(details or {}),
+        "files": files,
+    }
+
+
+# -- reading -------------------------------------------------------------------------------
+def read_run_manifest(folder: str | Path) -> dict[str, Any] | None:
+    """The run manifest of an output folder, or None if it has none.
+
+    Raises
+    ------
+    DataError
+        The manifest exists but is not a labkit run manifest.
+    """
+    path = Path(folder) / RUN_MANIFEST
+    if not path.is_file():
+        return None
+    try:
+        manifest = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise DataError(f"{path} is not a readable run manifest ({error})") from None
+    if (
+        not isinstance(manifest, dict)
+        or manifest.get("kind") != "labkit-run"
+        or not isinstance(manifest.get("files"), dict)
+    ):
+        raise DataError(f"{path} is not a labkit run manifest; the folder was altered")
+    if manifest.get("format") != MANIFEST_FORMAT:
+        raise DataError(
+            f"{path}: run manifest format {manifest.get('format')!r} is not supported "
+            f"(this labkit reads format {MANIFEST_FORMAT})"
+        )
+    return manifest
+
+
+def verify_output_folder(
+    folder: str | Path, *, what: str, rerun: str, hashes: bool = True
+) -> dict[str, Any] | None:
+    """Check that an output folder is the complete set one run wrote.
+
+    Parameters
+    ----------
+    folder : str or Path
+        The folder to read.
+    what : str
+        What the folder is, for messages (e.g. ``"HDR folder"``).
+    rerun : str
+        The command that makes it again, for messages.
+    hashes : bool
+        Also compare every file's sha256 (otherwise only sizes).
+
+    Returns
+    -------
+    dict or None
+        The run manifest; None for a folder without one (assembled by hand: not checked).
+
+    Raises
+    ------
+    DataError
+        A listed file is missing or changed, or a file is not from that run (a mixed set).
+    """
+    folder = Path(folder)
+    manifest = read_run_manifest(folder)
+    if manifest is None:
+        return None
+    run_id = str(manifest.get("run_id"))[:8]
+    run = f"`{manifest.get('command')}` run {run_id} of {manifest.get('finished')}"
+    files: dict[str, Any] = manifest["files"]
+    for name, facts in files.items():
+        path = folder / name
+        if not _inside(path, folder):
+            raise DataError(f"{folder / RUN_MANIFEST} lists {name!r}, outside the folder")
+        problem = None
+        if not path.is_file():
+            problem = "is missing"
+        elif path.stat().st_size != facts.get("bytes"):
+            problem = "has changed size"
+        elif hashes and file_sha256(path) != facts.get("sha256"):
+            problem = "has changed content"
+        if problem:
+            raise DataError(
+                f"{what} {folder} is not the complete set of the {run}: {name} {problem}; "
+                f"run {rerun} again"
+            )
+    for path in sorted(folder.rglob("*")):
+        name = path.relative_to(folder).as_posix()
+        if path.is_file() and name != RUN_MANIFEST and name not in files:
+            if any(part.startswith(".") for part in path.relative_to(folder).parts):
+                continue
+            raise DataError(
+                f"{what} {folder} mixes files of different runs: {name} is not from the "
+                f"{run}; run {rerun} again into a new folder"
+            )
+    return manifest
+
+
+def verify_output_file(path: str | Path, *, what: str = "input", levels: int = 3) -> None:
+    """Check one input file against the run manifest of the output folder it lies in, if any.
+
+    The folders above `path` (up to `levels` of them) are searched for a run manifest; a
+    file inside a run's folder must be listed by it with the same size and sha256. A file
+    in no run's folder is not checked.
+
+    Raises
+    ------
+    DataError
+        The file is not from that run (a mixed set) or was changed after it.
+    """
+    path = Path(path)
+    folder = path.parent
+    for _ in range(levels):
+        manifest = read_run_manifest(folder)
+        if manifest is not None:
+            name = path.relative_to(folder).as_posix()
+            facts = manifest["files"].get(name)
+            run = f"`{manifest.get('command')}` run of {manifest.get('finished')}"
+            if facts is None:
+                raise DataError(
+                    f"{what} {path} is not one of the files the {run} wrote into {folder}: "
+                    "the folder mixes runs; use a file from a complete run folder"
+                )
+            if path.stat().st_size != facts.get("bytes") or file_sha256(path) != facts.get(
+                "sha256"
+            ):
+                raise DataError(
+                    f"{what} {path} has changed since the {run} wrote it "
+                    f"({folder / RUN_MANIFEST}); run that command again"
+                )
+            return
+        if folder.parent == folder:
+            return
+        folder = folder.parent
+
+
+# -- helpers -------------------------------------------------------------------------------
+def _inside(path: Path, folder: Path) -> bool:
+    return Path(os.path.realpath(path)).is_relative_to(os.path.realpath(folder))
+
+
+def _fsync(folder: Path) -> None:
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _now() -> str:
+    return dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds")

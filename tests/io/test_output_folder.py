@@ -1,0 +1,236 @@
+"""A run's output folder is written as one set, by one writer at a time."""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from labkit.errors import ConfigError, DataError
+from labkit.io.output_folder import (
+    RUN_MANIFEST,
+    check_output_folder,
+    lock_file_of,
+    staged_output_folder,
+    verify_output_file,
+    verify_output_folder,
+    writer_lock,
+)
+
+
+def _write_set(out: Path, files: dict[str, str], command: str = "test") -> None:
+    with staged_output_folder(out, command=command) as stage:
+        for name, text in files.items():
+            (stage / name).parent.mkdir(parents=True, exist_ok=True)
+            (stage / name).write_text(text)
+
+
+def _contents(folder: Path) -> dict[str, str]:
+    return {
+        p.relative_to(folder).as_posix(): p.read_text()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file() and p.name != RUN_MANIFEST
+    }
+
+
+def _siblings(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.parent.iterdir() if p.name != folder.name)
+
+
+def test_a_set_is_written_with_a_manifest_that_verifies(tmp_path):
+    out = tmp_path / "out"
+    _write_set(out, {"a.txt": "1", "sub/b.txt": "22"})
+    assert _contents(out) == {"a.txt": "1", "sub/b.txt": "22"}
+    manifest = verify_output_folder(out, what="test folder", rerun="the test")
+    assert manifest is not None and manifest["command"] == "test"
+    assert manifest["files"]["sub/b.txt"]["bytes"] == 2
+    assert _siblings(out) == []  # no staging folder, no lock file left beside it
+    assert oct(out.stat().st_mode & 0o777) != "0o700"  # not mkdtemp's private mode
+
+
+def test_a_new_set_replaces_the_previous_one_as_a_whole(tmp_path):
+    out = tmp_path / "out"
+    _write_set(out, {"old.txt": "old", "both.txt": "old"})
+    _write_set(out, {"both.txt": "new"})
+    assert _contents(out) == {"both.txt": "new"}
+    assert _siblings(out) == []
+
+
+@pytest.mark.parametrize("fail", [RuntimeError("boom"), KeyboardInterrupt()])
+def test_a_failed_run_leaves_the_previous_set_and_no_staging(tmp_path, fail):
+    out = tmp_path / "out"
+    _write_set(out, {"a.txt": "previous"})
+    with pytest.raises(type(fail)), staged_output_folder(out, command="test") as stage:
+        (stage / "a.txt").write_text("new")
+        raise fail
+    assert _contents(out) == {"a.txt": "previous"}
+    assert _siblings(out) == []
+    verify_output_folder(out, what="test folder", rerun="the test")
+
+
+def test_a_failed_first_run_leaves_nothing(tmp_path):
+    out = tmp_path / "out"
+    with pytest.raises(RuntimeError), staged_output_folder(out, command="test") as stage:
+        (stage / "a.txt").write_text("new")
+        raise RuntimeError
+    assert not out.exists() and _siblings(out) == []
+
+
+def test_a_full_disk_is_a_clear_error_that_keeps_the_previous_set(tmp_path):
+    out = tmp_path / "out"
+    _write_set(out, {"a.txt": "previous"})
+    with pytest.raises(DataError, match=r"disk is full.*nothing was changed"):
+        with staged_output_folder(out, command="test") as stage:
+            (stage / "a.txt").write_text("new")
+            raise OSError(errno.ENOSPC, "No space left on device", str(stage / "b.txt"))
+    assert _contents(out) == {"a.txt": "previous"}
+
+
+@pytest.mark.parametrize("kind", ["file", "foreign folder", "symlink"])
+def test_outputs_that_are_not_a_run_folder_are_refused_untouched(tmp_path, kind):
+    out = tmp_path / "out"
+    if kind == "file":
+        out.write_text("precious")
+        match = "not a folder"
+    elif kind == "foreign folder":
+        out.mkdir()
+        (out / "notes.txt").write_text("precious")
+        match = "no labkit run wrote"
+    else:
+        (tmp_path / "real").mkdir()
+        out.symlink_to(tmp_path / "real")
+        match = "symbolic link"
+    with pytest.raises(ConfigError, match=match):
+        _write_set(out, {"a.txt": "new"})
+    if kind == "file":
+        assert out.read_text() == "precious"
+    elif kind == "foreign folder":
+        assert _contents(out) == {"notes.txt": "precious"}
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        ["out", *(["real"] if kind == "symlink" else [])]
+    )
+
+
+def test_an_empty_folder_may_be_the_output(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    _write_set(out, {"a.txt": "1"})
+    assert _contents(out) == {"a.txt": "1"}
+
+
+def test_an_unwritable_place_is_refused_before_any_work(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    with pytest.raises(ConfigError, match="cannot create files under"):
+        check_output_folder(blocker / "out")
+
+
+_HOLDER = textwrap.dedent(
+    """
+    import sys, time
+    from labkit.io.output_folder import staged_output_folder
+    out = sys.argv[1]
+    with staged_output_folder(out, command="labkit holder") as stage:
+        (stage / "partial.txt").write_text("half")
+        print("staged", flush=True)
+        time.sleep(60)
+    """
+)
+
+
+def _start_holder(out: Path) -> subprocess.Popen:
+    holder = subprocess.Popen(
+        [sys.executable, "-c", _HOLDER, str(out)], stdout=subprocess.PIPE, text=True
+    )
+    assert holder.stdout is not None and holder.stdout.readline().strip() == "staged"
+    return holder
+
+
+def test_a_second_writer_is_refused_naming_the_holder(tmp_path):
+    out = tmp_path / "out"
+    holder = _start_holder(out)
+    try:
+        with pytest.raises(ConfigError, match=rf"pid {holder.pid} .*labkit holder"):
+            _write_set(out, {"a.txt": "second"})
+        with pytest.raises(ConfigError, match="being written by another labkit run"):
+            with writer_lock(out, command="second"):
+                pass
+    finally:
+        holder.kill()
+        holder.wait()
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("previous", [False, True])
+def test_kill_9_mid_run_leaves_the_previous_set_and_no_stale_lock(tmp_path, previous):
+    out = tmp_path / "out"
+    if previous:
+        _write_set(out, {"a.txt": "previous"})
+    holder = _start_holder(out)
+    os.kill(holder.pid, signal.SIGKILL)
+    holder.wait()
+    if previous:
+        assert _contents(out) == {"a.txt": "previous"}
+        verify_output_folder(out, what="test folder", rerun="the test")
+    else:
+        assert not out.exists()
+    assert any(name.startswith(".out.staging-") for name in _siblings(out))  # hidden leftover
+    _write_set(out, {"a.txt": "rerun"})  # the lock died with its process
+    assert _contents(out) == {"a.txt": "rerun"}
+    assert _siblings(out) == []  # the rerun removed the killed run's staging folder
+
+
+def test_the_lock_is_reentrant_in_one_process_and_removed_after(tmp_path):
+    out = tmp_path / "out"
+    with writer_lock(out, command="outer"):
+        info = json.loads(lock_file_of(out).read_text())
+        assert info["pid"] == os.getpid() and info["command"] == "outer"
+        _write_set(out, {"a.txt": "1"})  # the writer locks it again
+        assert lock_file_of(out).exists()
+    assert not lock_file_of(out).exists()
+
+
+@pytest.mark.parametrize(
+    ("damage", "match"),
+    [
+        (lambda out: (out / "a.txt").unlink(), "a.txt is missing"),
+        (lambda out: (out / "a.txt").write_text("longer"), "a.txt has changed size"),
+        (lambda out: (out / "a.txt").write_text("2"), "a.txt has changed content"),
+        (lambda out: (out / "extra.exr").write_text("x"), "mixes files.*extra.exr"),
+        (lambda out: (out / RUN_MANIFEST).write_text("{"), "not a readable run manifest"),
+        (lambda out: (out / RUN_MANIFEST).write_text("[]"), "not a labkit run manifest"),
+    ],
+)
+def test_readers_refuse_a_damaged_or_mixed_set(tmp_path, damage, match):
+    out = tmp_path / "out"
+    _write_set(out, {"a.txt": "1", "b.txt": "2"})
+    damage(out)
+    with pytest.raises(DataError, match=match):
+        verify_output_folder(out, what="test folder", rerun="the test")
+
+
+def test_a_folder_without_manifest_is_taken_as_assembled_by_hand(tmp_path):
+    (tmp_path / "x.exr").write_text("x")
+    assert verify_output_folder(tmp_path, what="test folder", rerun="the test") is None
+
+
+def test_one_input_file_is_checked_against_its_run(tmp_path):
+    out = tmp_path / "out"
+    _write_set(out, {"scene/a.exr": "1"})
+    verify_output_file(out / "scene" / "a.exr")
+    (out / "scene" / "b.exr").write_text("2")
+    with pytest.raises(DataError, match="not one of the files"):
+        verify_output_file(out / "scene" / "b.exr")
+    (out / "scene" / "a.exr").write_text("3")
+    with pytest.raises(DataError, match="has changed since"):
+        verify_output_file(out / "scene" / "a.exr")
+    loose = tmp_path / "loose.exr"
+    loose.write_text("x")
+    verify_output_file(loose)  # in no run's folder: not checked
