@@ -15,6 +15,13 @@ import argparse
 import math
 from pathlib import Path
 
+from labkit.io.output_folder import (
+    check_output_files,
+    check_output_folder,
+    staged_output_files,
+    staged_output_folder,
+)
+
 
 def register(commands: argparse._SubParsersAction) -> None:
     """Add ``labkit calibrate …``."""
@@ -161,16 +168,18 @@ def _sensitivity(args: argparse.Namespace) -> int:
         plot_channel_sensitivity,
     )
 
+    check_output_folder(args.out)
     scenes = load_filtered_hdr(args.hdr, scenes=args.scene)
     images = [image for group in scenes.values() for image in group]
     rig = _images_rig(args.rig, images, default=True)
     measured = channel_sensitivity(images, saturation=args.saturation)
     nominal = nominal_channel_sensitivity(rig)
-    args.out.mkdir(parents=True, exist_ok=True)
-    paths = [args.out / f"sensitivity.{suffix}" for suffix in ("csv", "yaml", "png")]
-    measured.to_csv(paths[0])
-    measured.to_yaml(paths[1])
-    plot_channel_sensitivity(measured, nominal, paths[2])
+    names = [f"sensitivity.{suffix}" for suffix in ("csv", "yaml", "png")]
+    with staged_output_folder(args.out, command="labkit calibrate sensitivity") as stage:
+        measured.to_csv(stage / names[0])
+        measured.to_yaml(stage / names[1])
+        plot_channel_sensitivity(measured, nominal, stage / names[2])
+    paths = [args.out / name for name in names]
     print(f"{len(images)} image(s) of {len(scenes)} scene(s) {sorted(scenes)}; "
           f"nominal ratios from {rig.source or rig.name}")  # fmt: skip
     print(sensitivity_table(measured, nominal))
@@ -219,6 +228,8 @@ def _vignetting(args: argparse.Namespace) -> int:
     from calibration.vignetting import fit_vignetting
     from labkit.errors import DataError
 
+    plot = args.out.with_suffix(".png")
+    check_output_files([args.out, plot])
     images = {image.illumination: image for image in load_scene_hdr(args.hdr, args.scene)}
     if args.illumination not in images:
         raise DataError(
@@ -237,9 +248,10 @@ def _vignetting(args: argparse.Namespace) -> int:
     model = fit_vignetting(
         image.raw, cfa=image.cfa, mask=mask, max_degree=args.max_degree, name=name
     )
-    model.save(args.out)
     plot = args.out.with_suffix(".png")
-    plot_vignetting(model, plot)
+    with staged_output_files([args.out, plot], command="labkit calibrate vignetting") as staged:
+        model.save(staged[0])
+        plot_vignetting(model, staged[1])
     print(f"{name}: fitted on the {origin}; degree {model.degree} by 10-fold cross-validation")
     print(f"wrote {args.out} and {plot}")
     return 0
@@ -270,6 +282,8 @@ def _dispersion(args: argparse.Namespace) -> int:
     )
     from calibration.plots import plot_keypoint_residuals, plot_model
 
+    outputs = [args.out, *(args.out.with_suffix(s) for s in _DISPERSION_COMPANIONS)]
+    check_output_files(outputs)
     images = load_scene_hdr(args.hdr, args.scene)
     colour = args.reference.upper() in ("R", "G", "B")
     bands = None
@@ -291,22 +305,23 @@ def _dispersion(args: argparse.Namespace) -> int:
     print(band_table(result))
     for warning in result.warnings:
         print(f"warning: {warning}")
-    result.model.save(args.out)
-    written = [args.out]
-    written.append(result.keypoints.to_csv(args.out.with_suffix(".keypoints.csv")))
-    if not args.no_plots:
-        written.append(plot_model(result.model, args.out.with_suffix(".png")))
-        written.append(
-            plot_keypoint_residuals(
-                result.model, result.keypoints, args.out.with_suffix(".residuals.png")
-            )
-        )
+    with staged_output_files(outputs, command="labkit calibrate dispersion") as staged:
+        result.model.save(staged[0])
+        result.keypoints.to_csv(staged[1])
+        if not args.no_plots:  # an earlier run's plots are removed
+            plot_model(result.model, staged[2])
+            plot_keypoint_residuals(result.model, result.keypoints, staged[3])
+    written = [path for path in outputs if path.exists()]
     print(f"{len(result.keypoints)} keypoints; model: " + ", ".join(
         f"{key} {value:.3g}" if isinstance(value, float) else f"{key} {value}"
         for key, value in summary(result).items()
     ))  # fmt: skip
     print("wrote " + ", ".join(str(path) for path in written))
     return 0
+
+
+_DISPERSION_COMPANIONS = (".keypoints.csv", ".png", ".residuals.png")
+"""What `labkit calibrate dispersion --out MODEL.yaml` writes beside the model."""
 
 
 def _rig_bands(rig_path: Path | None, images) -> dict:

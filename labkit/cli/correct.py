@@ -63,7 +63,9 @@ def _warp(args: argparse.Namespace) -> int:
         write_rgb_exr,
         write_spectral_exr,
     )
+    from labkit.io.output_folder import check_output_files, staged_output_files
 
+    check_output_files([args.out, args.out.with_suffix(".png")])
     model = load_dispersion_model(args.model)
     provenance = {"input": str(args.image), "dispersion_model": str(args.model)}
     try:
@@ -82,9 +84,10 @@ def _warp(args: argparse.Namespace) -> int:
             )
         rgb = demosaic_bilinear(raw.raw, raw.cfa).astype("float32")
         corrected = correct_channels(rgb, model, order=args.order)
-        write_rgb_exr(args.out, corrected, {**raw.labkit, **provenance, "corrected": "warp"})
         preview = args.out.with_suffix(".png")
-        write_png(preview, to_display(corrected))
+        with staged_output_files([args.out, preview], command="labkit correct warp") as staged:
+            write_rgb_exr(staged[0], corrected, {**raw.labkit, **provenance, "corrected": "warp"})
+            write_png(staged[1], to_display(corrected))
         print(f"warped R and B onto G with {args.model}; wrote {args.out} and {preview}")
         return 0
     if args.cfa is not None:
@@ -107,10 +110,11 @@ def _warp(args: argparse.Namespace) -> int:
                 "extrapolated"
             )
     cube = correct_spectral(spectral.cube, spectral.wavelengths_nm, model, order=args.order)
-    write_spectral_exr(
-        args.out,
-        SpectralImage(cube, spectral.wavelengths_nm, {**spectral.labkit, **provenance}),
-    )
+    with staged_output_files([args.out], command="labkit correct warp") as staged:
+        write_spectral_exr(
+            staged[0],
+            SpectralImage(cube, spectral.wavelengths_nm, {**spectral.labkit, **provenance}),
+        )
     print(f"warped {cube.shape[2]} bands with {args.model}; wrote {args.out}")
     return 0
 

@@ -80,10 +80,11 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 def _evaluate(args: argparse.Namespace) -> int:
     from labkit.errors import DataError
-    from labkit.io import display_on_one_scale, read_mosaic, write_png, write_text_atomic
-    from labkit.report import Report, file_stem
+    from labkit.io import read_mosaic
+    from labkit.io.output_folder import check_output_folder, staged_output_folder
     from reconstruction import baseline_images, evaluate
 
+    check_output_folder(args.out)
     raw = read_mosaic(args.raw, cfa=args.cfa)
     images_in = dict(_named_image(spec, raw.raw.shape) for spec in args.image)
     methods = [] if args.baselines == "none" else [m.strip() for m in args.baselines.split(",")]
@@ -118,8 +119,20 @@ def _evaluate(args: argparse.Namespace) -> int:
     images.update(images_in)
     result = evaluate(raw.raw, images, cfa=raw.cfa, boxes=boxes, labels=labels,
                       truth_colour=truth, seconds=seconds)  # fmt: skip
-    out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
+    with staged_output_folder(args.out, command="labkit evaluate") as stage:
+        header, rows = _write_evaluation(args, raw, images, result, stage)
+    for row in rows:
+        print("  ".join(f"{h}: {v}" for h, v in zip(header, row, strict=True)))
+    print(f"wrote {args.out / 'evaluation.json'}, evaluation.md, evaluation.html")
+    return 0
+
+
+def _write_evaluation(args: argparse.Namespace, raw, images: dict, result, stage: Path):
+    """The report, figures and JSON of an evaluation, into the staging folder; returns the
+    table (header, rows)."""
+    from labkit.io import display_on_one_scale, write_png, write_text_atomic
+    from labkit.report import Report, file_stem
+
     report = Report(f"labkit evaluate — {args.raw.name}")
     report.paragraph(
         f"Raw image `{args.raw}` ({raw.raw.shape[1]}×{raw.raw.shape[0]}, {raw.cfa}). "
@@ -129,17 +142,14 @@ def _evaluate(args: argparse.Namespace) -> int:
     report.table(header, rows)
     figures = []
     for name, image in display_on_one_scale(images).items():
-        path = out / f"{file_stem(name)}.png"
+        path = stage / f"{file_stem(name)}.png"
         write_png(path, image)
         figures.append((path.name, name))
     report.figures(figures, width_px=320)
     plain = {"raw": str(args.raw), **result.as_dict()}
-    write_text_atomic(out / "evaluation.json", json.dumps(plain, indent=1) + "\n")
-    report.write(out, "evaluation")
-    for row in rows:
-        print("  ".join(f"{h}: {v}" for h, v in zip(header, row, strict=True)))
-    print(f"wrote {out / 'evaluation.json'}, evaluation.md, evaluation.html")
-    return 0
+    write_text_atomic(stage / "evaluation.json", json.dumps(plain, indent=1) + "\n")
+    report.write(stage, "evaluation")
+    return header, rows
 
 
 def _named_image(spec: str, shape: tuple[int, int]):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 from labkit.cfa import pixel_format_for
@@ -55,8 +56,12 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def _render(args: argparse.Namespace) -> int:
-    if args.exposure <= 0:
-        raise ConfigError(f"--exposure must be > 0 s, got {args.exposure}")
+    from labkit.io.output_folder import check_output_files, staged_output_files
+
+    if args.exposure <= 0 or not math.isfinite(args.exposure):
+        raise ConfigError(f"--exposure must be > 0 s (a finite number), got {args.exposure}")
+    outputs = [args.out, *([args.preview] if args.preview else [])]
+    check_output_files(outputs)
     rig = SimulatedRig(load_rig(args.rig or default_rig_path()))
     camera = SimCamera(rig, fast=True, seed=args.seed)
     camera.set_scene(args.scene)
@@ -77,10 +82,11 @@ def _render(args: argparse.Namespace) -> int:
         "frame_id": frame.frame_id,
         "true_exposure_s": frame.extra["true_exposure_s"],
     }
-    write_raw_tiff(args.out, frame.image, metadata)
-    if args.preview:
-        black = frame.extra["black_level"]
-        write_png(args.preview, raw_preview(frame.image, rig.rig.cfa, black_level=black))
+    with staged_output_files(outputs, command="labkit sim render") as staged:
+        write_raw_tiff(staged[0], frame.image, metadata)
+        if args.preview:
+            black = frame.extra["black_level"]
+            write_png(staged[1], raw_preview(frame.image, rig.rig.cfa, black_level=black))
     rows, cols = frame.image.shape
     print(
         f"wrote {args.out}: {cols}×{rows} {frame.pixel_format}, {args.scene} under "

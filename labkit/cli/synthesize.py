@@ -43,16 +43,21 @@ def _synthesize(args: argparse.Namespace) -> int:
         synthesize_multispectral,
         write_synthesis,
     )
+    from labkit.io.output_folder import check_output_folder, staged_output_folder
 
+    check_output_folder(args.out)
     sensitivity = ChannelSensitivity.from_file(args.sensitivity)
     scenes = load_filtered_hdr(args.hdr, scenes=args.scene)
-    for scene, images in scenes.items():
-        synthesis = synthesize_multispectral(images, sensitivity)
-        paths = write_synthesis(synthesis, args.out, scene)
-        bands = ", ".join(f"{w:g}" for w in synthesis.multispectral.wavelengths_nm)
-        unreliable = synthesis.raw.labkit["unreliable_bands"]
-        note = f" (unreliable ratios at {unreliable} nm)" if unreliable else ""
-        print(f"{scene}: {len(images)} bands [{bands}] nm{note} → "
-              + ", ".join(path.name for path in paths.values()))  # fmt: skip
+    lines = []
+    with staged_output_folder(args.out, command="labkit synthesize") as stage:
+        for scene, images in scenes.items():
+            synthesis = synthesize_multispectral(images, sensitivity)
+            paths = write_synthesis(synthesis, stage, scene)
+            bands = ", ".join(f"{w:g}" for w in synthesis.multispectral.wavelengths_nm)
+            unreliable = synthesis.raw.labkit["unreliable_bands"]
+            note = f" (unreliable ratios at {unreliable} nm)" if unreliable else ""
+            lines.append(f"{scene}: {len(images)} bands [{bands}] nm{note} → "
+                         + ", ".join(path.name for path in paths.values()))  # fmt: skip
+    print("\n".join(lines))
     print(f"wrote {len(scenes)} scene(s) to {args.out}")
     return 0

@@ -33,13 +33,13 @@ import socket
 import tempfile
 import threading
 import uuid
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
 import labkit
 from labkit.errors import ConfigError, DataError
-from labkit.io.atomic import process_umask
+from labkit.io.atomic import atomic_path, process_umask
 from labkit.io.digest import file_sha256
 
 RUN_MANIFEST = "labkit-run.json"
@@ -244,6 +244,97 @@ def staged_output_folder(
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
         _fsync(out.parent)
+
+
+def check_output_files(files: Sequence[str | Path], *, option: str = "--out") -> list[Path]:
+    """Raise unless `files` (a run's output files) can be written; nothing is created.
+
+    Each must not be a folder, the places must be writable, and no two may be the same file
+    (e.g. ``--out model.png`` whose plot would be ``model.png`` too).
+
+    Raises
+    ------
+    ConfigError
+        Naming the file and the fix.
+    """
+    paths = [Path(f) for f in files]
+    seen: dict[str, Path] = {}
+    for path in paths:
+        if path.is_dir():
+            raise ConfigError(f"{option} {paths[0]}: {path} is a folder; give a file name")
+        real = os.path.realpath(path)
+        if real in seen:
+            raise ConfigError(
+                f"{option} {paths[0]}: this run would write {path} twice (also as "
+                f"{seen[real]}), one output over another; give {option} another name or suffix"
+            )
+        seen[real] = path
+        existing = path.parent
+        while not existing.exists() and existing.parent != existing:
+            existing = existing.parent
+        if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
+            raise ConfigError(
+                f"{option} {paths[0]}: cannot create {path} under {existing}; choose a "
+                "writable place"
+            )
+    return paths
+
+
+@contextlib.contextmanager
+def staged_output_files(
+    files: Sequence[str | Path], *, command: str, option: str = "--out"
+) -> Iterator[list[Path]]:
+    """Yield staging paths for a run's output files, put in place together on success.
+
+    The first file is the run's result (e.g. a model YAML), the others its companions
+    (plots, tables). Write each at the staging path given for it, or leave a companion
+    unwritten to remove an earlier run's file of that name. On success the companions are
+    put in place first and the result last, each in one rename; on failure nothing of the
+    previous files changes and the staging folder is removed. The block runs under
+    :func:`writer_lock` of the result.
+
+    Raises
+    ------
+    ConfigError
+        See :func:`check_output_files`; another run is writing the result.
+    DataError
+        The disk is full or a file cannot be written: nothing was changed.
+    """
+    paths = check_output_files(files, option=option)
+    primary = paths[0]
+    with writer_lock(primary, command=command, option=option):
+        primary.parent.mkdir(parents=True, exist_ok=True)
+        _remove_stale_staging(primary)
+        staging = Path(tempfile.mkdtemp(prefix=f".{primary.name}{_STAGING}", dir=primary.parent))
+        staged = [staging / f"{i}{path.suffix}" for i, path in enumerate(paths)]
+        try:
+            with _disk_errors(primary, option):
+                yield staged
+                if not staged[0].is_file():
+                    raise RuntimeError(f"the run wrote no {primary}")
+                for path in paths:
+                    path.parent.mkdir(parents=True, exist_ok=True)
+                for temp, path in reversed(list(zip(staged, paths, strict=True))):
+                    if temp.exists():
+                        _move_into_place(temp, path)
+                    else:
+                        path.unlink(missing_ok=True)  # an earlier run's companion
+                for folder in {path.parent for path in paths}:
+                    _fsync(folder)
+        finally:
+            shutil.rmtree(staging, ignore_errors=True)
+
+
+def _move_into_place(temp: Path, path: Path) -> None:
+    """Rename a staged file over `path`; across file systems, through a copy beside it."""
+    os.chmod(temp, 0o666 & ~process_umask())
+    try:
+        os.replace(temp, path)
+    except OSError as error:
+        if error.errno != errno.EXDEV:
+            raise
+        with atomic_path(path, suffix=temp.suffix) as beside:
+            shutil.copyfile(temp, beside)
 
 
 def _put_in_place(staging: Path, out: Path) -> Path | None:

@@ -110,7 +110,8 @@ def test_calibrate_one_scene_and_synthesize(
             "--scene", "chart", "--out", str(only)]  # fmt: skip
     assert main(args) == 0
     assert sorted(p.name for p in only.iterdir()) == [
-        "chart-multispectral.exr", "chart-synthetic-raw.exr", "chart-synthetic-rgb.png"
+        "chart-multispectral.exr", "chart-synthetic-raw.exr", "chart-synthetic-rgb.png",
+        "labkit-run.json",
     ]  # fmt: skip
 
 

@@ -16,8 +16,10 @@ import pytest
 from labkit.errors import ConfigError, DataError
 from labkit.io.output_folder import (
     RUN_MANIFEST,
+    check_output_files,
     check_output_folder,
     lock_file_of,
+    staged_output_files,
     staged_output_folder,
     verify_output_file,
     verify_output_folder,
@@ -234,3 +236,53 @@ def test_one_input_file_is_checked_against_its_run(tmp_path):
     loose = tmp_path / "loose.exr"
     loose.write_text("x")
     verify_output_file(loose)  # in no run's folder: not checked
+
+
+# -- a result file and its companions -------------------------------------------------------
+def _write_files(paths: list[Path], texts: list[str | None], command: str = "test") -> None:
+    with staged_output_files(paths, command=command) as staged:
+        for temp, text in zip(staged, texts, strict=True):
+            if text is not None:
+                temp.write_text(text)
+
+
+def test_a_result_and_its_companions_are_put_in_place_together(tmp_path):
+    paths = [tmp_path / "model.yaml", tmp_path / "model.png", tmp_path / "model.csv"]
+    _write_files(paths, ["model 1", "plot 1", "table 1"])
+    _write_files(paths, ["model 2", None, "table 2"])  # no plot this time: the old one goes
+    assert [p.read_text() if p.exists() else None for p in paths] == ["model 2", None, "table 2"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["model.csv", "model.yaml"]
+
+
+def test_a_failed_run_leaves_the_previous_result_and_companions(tmp_path):
+    paths = [tmp_path / "model.yaml", tmp_path / "model.png"]
+    _write_files(paths, ["model 1", "plot 1"])
+    with pytest.raises(RuntimeError), staged_output_files(paths, command="test") as staged:
+        staged[0].write_text("model 2")
+        raise RuntimeError("killed before its plots")
+    assert [p.read_text() for p in paths] == ["model 1", "plot 1"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["model.png", "model.yaml"]
+
+
+@pytest.mark.parametrize(
+    "names", [["model.png", "model.png"], ["a/../model.yaml", "model.yaml"], ["same", "./same"]]
+)
+def test_outputs_of_one_run_may_not_collide(tmp_path, names):
+    (tmp_path / "a").mkdir()
+    paths = [tmp_path / name for name in names]
+    paths[0].write_text("precious") if paths[0].parent.is_dir() else None
+    with pytest.raises(ConfigError, match="would write .* twice"):
+        _write_files(paths, ["x", "y"])
+    assert paths[0].read_text() == "precious"
+
+
+def test_a_folder_where_a_file_goes_is_refused(tmp_path):
+    (tmp_path / "model.png").mkdir()
+    with pytest.raises(ConfigError, match="is a folder"):
+        check_output_files([tmp_path / "model.yaml", tmp_path / "model.png"])
+
+
+def test_a_result_needs_its_primary_file(tmp_path):
+    with pytest.raises(RuntimeError, match="wrote no"):
+        _write_files([tmp_path / "model.yaml", tmp_path / "model.png"], [None, "plot"])
+    assert list(tmp_path.iterdir()) == []
