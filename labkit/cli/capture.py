@@ -97,10 +97,9 @@ class _Bar:
 
 
 def _capture(args: argparse.Namespace) -> int:
-    from labkit.protocol import Engine, build_plan, validate_plan
-    from labkit.protocol.engine import CaptureStopped
+    from labkit.io.output_folder import writer_lock
+    from labkit.protocol import build_plan, validate_plan
     from labkit.protocol.hardware import open_hardware
-    from labkit.session import SESSION_FILE, Session
 
     rig_path = args.rig or default_rig_path()
     rig = load_rig(rig_path)
@@ -109,6 +108,17 @@ def _capture(args: argparse.Namespace) -> int:
         rig = rig.model_copy(update={"sim": rig.sim.model_copy(update={"sensor": sensor})})
     if args.dry_run:
         return _dry_run(rig, args, build_plan, validate_plan, open_hardware)
+    with writer_lock(args.session, command="labkit capture", option="--session"):
+        return _capture_session(args, rig)
+
+
+def _capture_session(args: argparse.Namespace, rig: Any) -> int:
+    """Capture (or resume) the session; the caller holds the session's writer lock."""
+    from labkit.protocol import Engine, build_plan, validate_plan
+    from labkit.protocol.engine import CaptureStopped
+    from labkit.protocol.hardware import open_hardware
+    from labkit.session import SESSION_FILE, Session
+
     resumed = (args.session / SESSION_FILE).exists()
     if resumed:  # refuse another plan's session before touching any device
         session, _ = Session.open_for(args.session, rig)
@@ -178,7 +188,7 @@ def _dry_run(rig, args, build_plan, validate_plan, open_hardware) -> int:
     brackets = {}
     stored: set[str] = set()
     if (args.session / SESSION_FILE).exists():
-        session, _ = Session.open_for(args.session, rig)
+        session, _ = Session.open_for(args.session, rig, repair=False)  # a dry run writes nothing
         brackets, stored = session.brackets, set(session.records)
     plan = build_plan(rig, brackets)
     print(plan.describe())

@@ -21,11 +21,13 @@ from collections import defaultdict
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import tifffile
 
 from labkit.errors import ConfigError, DataError
-from labkit.frame import DARK, Frame, FrameKey
+from labkit.frame import DARK, Frame, FrameKey, path_name_problem
+from labkit.io.output_folder import check_output_folder, staged_output_folder
 from labkit.rig import Rig
 from labkit.session.sample_format import SampleFacts, decide_formats, stored_samples
 from labkit.session.store import Session
@@ -138,6 +140,11 @@ def match_files(
             scene, illumination = None, DARK
         elif not scene:
             raise DataError(f"{path.name}: the pattern gives no {{scene}} for a lit frame")
+        elif why := path_name_problem(scene):
+            raise DataError(
+                f"{path.name}: the pattern gives scene {scene!r}, which cannot name a folder "
+                f"({why}); rename the file or use a --pattern that gives a plain name"
+            )
         exposure = parse_exposure(fields["exposure"])
         replicate = int(fields.get("replicate") or 0)
         groups[scene, illumination, exposure].append((replicate, path.name, path))
@@ -190,7 +197,9 @@ def import_session(
     ------
     DataError
         No file matches, a file is not a 2-D mosaic, or the files' levels cannot be
-        decided (:func:`labkit.session.sample_format.decide_formats`). Nothing is written.
+        decided (:func:`labkit.session.sample_format.decide_formats`). Nothing is written:
+        the session is built in a staging folder and put in place when complete, so an
+        import that fails (a full disk, Ctrl-C) leaves no half-built session behind.
     """
     sources = [Path(source)] if isinstance(source, str | Path) else [Path(s) for s in source]
     if not sources:
@@ -221,12 +230,30 @@ def import_session(
         black_level=black_level,
     )
     origin = [str(s.resolve()) for s in sources]
-    session = Session.create(
-        folder,
-        rig,
-        imported_from=origin[0] if len(origin) == 1 else origin,
-        import_patterns=list(patterns),
-    )
+    check_output_folder(folder, option="session folder")
+    Session.check_creatable(folder)
+    with staged_output_folder(folder, command="labkit session import", option="session") as stage:
+        session = Session.create(
+            stage,
+            rig,
+            imported_from=origin[0] if len(origin) == 1 else origin,
+            import_patterns=list(patterns),
+        )
+        _store_all(session, matched, images, facts, formats, rig, progress)
+        session.set_status("imported")
+    return Session.open(folder), unmatched
+
+
+def _store_all(
+    session: Session,
+    matched: list[ImportedFile],
+    images: dict[Path, Any],
+    facts: dict[Path, SampleFacts],
+    formats: dict[Path, Any],
+    rig: Rig,
+    progress: Any,
+) -> None:
+    """Store every matched frame in the (staged) session."""
     for item in matched:
         chosen = formats[item.path]
         frame = Frame(
@@ -249,5 +276,3 @@ def import_session(
         )
         if progress:
             progress(1)
-    session.set_status("imported")
-    return session, unmatched

@@ -158,16 +158,18 @@ class Session:
         return cls(folder, info, _read_manifest(folder / MANIFEST_FILE, repair=repair))
 
     @classmethod
-    def open_for(cls, folder: str | Path, rig: Rig, **facts: Any) -> tuple[Session, bool]:
+    def open_for(
+        cls, folder: str | Path, rig: Rig, *, repair: bool = True, **facts: Any
+    ) -> tuple[Session, bool]:
         """Open the session of `rig`'s plan in `folder`, or create it; returns (session, resumed).
 
         Raises ConfigError, touching nothing, when the folder holds a session of a
-        different rig or plan.
+        different rig or plan. `repair` as in :meth:`open` (a writer about to append).
         """
         folder = Path(folder)
         if not (folder / SESSION_FILE).exists():
             return cls.create(folder, rig, **facts), False
-        session = cls.open(folder, repair=True)
+        session = cls.open(folder, repair=repair)
         snapshot = rig_snapshot(rig)
         if session.info.get("plan_fingerprint") != plan_fingerprint(snapshot):
             change = first_difference(session.info.get("rig", {}), snapshot) or "the rig differs"

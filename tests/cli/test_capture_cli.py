@@ -256,3 +256,96 @@ def test_genicam_camera_without_exposure_control_fails_before_capturing(tmp_path
     missing = "has no exposure-time feature (neither ExposureTime nor ExposureTimeAbs)"
     assert missing in result.stderr
     assert not (tmp_path / "s").exists()
+
+
+# -- one writer per session; an import is all or nothing -----------------------------------
+_FLYCAPTURE = "d1_{scene}_{illumination}_{exposure}_{date}-{replicate}.tif"
+
+
+def _flycapture_folder(folder: Path, scene: str = "disks") -> Path:
+    folder.mkdir()
+    rng = np.random.default_rng(1)
+    for replicate in (1, 2, 3):
+        name = f"d1_{scene}_unfiltered_3ms_2019-02-08-174831-{replicate:04d}.tif"
+        tifffile.imwrite(folder / name, rng.integers(0, 4096, (16, 24), dtype=np.uint16))
+    return folder
+
+
+def test_a_second_capture_of_one_session_is_refused_naming_the_first(
+    quick_rig_file: Path, tmp_path: Path, capsys
+) -> None:
+    folder = tmp_path / "s"
+    holder = subprocess.Popen(
+        [sys.executable, "-c",
+         "import sys, time\n"
+         "from labkit.io.output_folder import writer_lock\n"
+         "with writer_lock(sys.argv[1], command='labkit capture', option='--session'):\n"
+         "    print('locked', flush=True); time.sleep(60)\n",
+         str(folder)],
+        stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "locked"
+        args = ["capture", str(quick_rig_file), "--session", str(folder), "--fast",
+                "--no-progress"]  # fmt: skip
+        assert main(args) == 2
+        err = capsys.readouterr().err
+        assert f"pid {holder.pid}" in err and "labkit capture" in err and err.count("\n") == 1
+        assert not folder.exists()
+    finally:
+        holder.kill()
+        holder.wait()
+    assert main(args) == 0  # the lock died with its holder
+    assert len(_assert_consistent(folder)) == QUICK_PLAN_FRAMES
+
+
+def test_an_import_that_fails_part_way_leaves_nothing_and_can_be_rerun(
+    tmp_path: Path, sim_rig_path: Path, monkeypatch, capsys
+) -> None:
+    import errno
+
+    source = _flycapture_folder(tmp_path / "fc")
+    folder = tmp_path / "s"
+    args = ["session", "import", str(folder), "--from", str(source), "--rig",
+            str(sim_rig_path), "--pattern", _FLYCAPTURE, "--no-progress"]  # fmt: skip
+    real_store, stored = Session.store, []
+
+    def store_until_the_disk_is_full(self, *a, **kw):
+        if len(stored) == 2:
+            raise OSError(errno.ENOSPC, "No space left on device", str(self.folder / "x"))
+        stored.append(1)
+        return real_store(self, *a, **kw)
+
+    monkeypatch.setattr(Session, "store", store_until_the_disk_is_full)
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "disk is full" in err and err.count("\n") == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fc"]  # nothing half-built left
+    monkeypatch.setattr(Session, "store", real_store)
+    assert main(args) == 0
+    assert len(_assert_consistent(folder)) == 3
+
+
+@pytest.mark.parametrize("scene", ["..", ".hidden"])
+def test_an_import_refuses_a_scene_name_that_would_leave_the_session(
+    tmp_path: Path, sim_rig_path: Path, capsys, scene: str
+) -> None:
+    source = _flycapture_folder(tmp_path / "fc", scene=scene)
+    args = ["session", "import", str(tmp_path / "s"), "--from", str(source), "--rig",
+            str(sim_rig_path), "--pattern", _FLYCAPTURE, "--no-progress"]  # fmt: skip
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert f"gives scene {scene!r}, which cannot name a folder" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fc"]
+
+
+def test_a_dry_run_writes_nothing_into_a_session(quick_rig_file: Path, tmp_path: Path) -> None:
+    folder = tmp_path / "s"
+    assert main(["capture", str(quick_rig_file), "--session", str(folder), "--fast",
+                 "--no-progress"]) == 0  # fmt: skip
+    manifest = folder / MANIFEST_FILE
+    torn = manifest.read_bytes() + b'{"key": "torn'
+    manifest.write_bytes(torn)
+    assert main(["capture", str(quick_rig_file), "--session", str(folder), "--dry-run"]) == 0
+    assert main(["session", "show", str(folder)]) == 0
+    assert manifest.read_bytes() == torn  # readers skip a torn line and never write
