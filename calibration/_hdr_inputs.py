@@ -13,6 +13,7 @@ from pathlib import Path
 
 from labkit.errors import DataError
 from labkit.io.exr import RawImage, read_raw_exr
+from labkit.io.light import check_light
 from labkit.io.output_folder import verify_output_folder
 
 #: Provenance key under which the loader records the file an image was read from.
@@ -73,9 +74,20 @@ def load_filtered_hdr(
             )
         grouped = {name: grouped[name] for name in scenes}
     for scene, images in grouped.items():
+        for image in images:
+            _check_light(image)
         check_consistent(images, what=f"scene {scene!r} in {root}")
         images.sort(key=lambda image: float(image.wavelength_nm))
     return grouped
+
+
+def _check_light(image: RawImage, path: Path | None = None) -> None:
+    """Refuse an HDR image that holds no usable light (:func:`labkit.io.light.check_light`)."""
+    check_light(
+        image.raw,
+        name=f"HDR image {path or source_of(image)}",
+        fix="merge its session again with `labkit hdr`, or re-take the capture",
+    )
 
 
 def _hdr_root(folder: str | Path) -> Path:
@@ -121,6 +133,7 @@ def load_scene_hdr(folder: str | Path, scene: str) -> list[RawImage]:
     images = []
     for path in paths:
         image = read_raw_exr(path)
+        _check_light(image, path)
         image.labkit[SOURCE_KEY] = str(path)
         images.append(image)
     check_consistent(images, what=f"scene {scene!r} in {root}")

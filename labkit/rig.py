@@ -17,11 +17,21 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from labkit.cfa import layout_from_pixel_format
 from labkit.errors import ConfigError, DataError
+from labkit.frame import path_name_problem
 from labkit.spectra import MEASURED_FILTER_COLUMNS, BandpassFilter
 
 RIG_FORMAT = 1
-PositiveFloat = Annotated[float, Field(gt=0)]
-NonNegativeFloat = Annotated[float, Field(ge=0)]
+PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+NonNegativeFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+Seed = Annotated[int, Field(ge=0, description="random seed, ≥ 0")]
+
+
+def _plain_name(name: str) -> str:
+    why = path_name_problem(name)
+    if why:
+        raise ValueError(f"{name!r} names folders and files of the session, but {why}")
+    return name
 
 
 class _Strict(BaseModel):
@@ -90,6 +100,11 @@ class SliderPosition(_Strict):
     name: Annotated[str, Field(min_length=1)]
     filter: FilterConfig | None = None
 
+    @field_validator("name")
+    @classmethod
+    def _plain_name(cls, value: str) -> str:
+        return _plain_name(value)
+
 
 class SliderConfig(_Strict):
     """The motorised filter slider / wheel."""
@@ -100,7 +115,9 @@ class SliderConfig(_Strict):
     timeout_s: Annotated[float, Field(gt=0, le=60)] = Field(2.0, description="reply timeout, s")
     move_timeout_s: Annotated[float, Field(gt=0, le=300)] = Field(5.0, description="per move, s")
     retries: Annotated[int, Field(ge=1, le=20)] = Field(3, description="attempts per command")
-    positions: dict[Annotated[int, Field(ge=0, le=12)], SliderPosition]
+    positions: dict[Annotated[int, Field(ge=1, le=12)], SliderPosition] = Field(
+        ..., description="slot number (1-based, as the drivers count) → position"
+    )
 
     @model_validator(mode="after")
     def _names(self) -> SliderConfig:
@@ -157,6 +174,12 @@ class PlanConfig(_Strict):
     """What to capture (thesis Algorithm 10)."""
 
     scenes: list[Annotated[str, Field(min_length=1)]] = ["disks", "colorchecker"]
+
+    @field_validator("scenes")
+    @classmethod
+    def _plain_names(cls, value: list[str]) -> list[str]:
+        return [_plain_name(name) for name in value]
+
     illuminations: list[str] | Literal["all"] = "all"
     exposures_s: ExposureConfig = ExposureConfig()
     replicates: ReplicateConfig = ReplicateConfig()
@@ -167,8 +190,8 @@ class PlanConfig(_Strict):
 class SimSensorConfig(_Strict):
     """Simulated sensor physics."""
 
-    width: Annotated[int, Field(ge=2, le=16384)] = 2448
-    height: Annotated[int, Field(ge=2, le=16384)] = 2048
+    width: Annotated[int, Field(ge=8, le=16384, multiple_of=2)] = 2448
+    height: Annotated[int, Field(ge=8, le=16384, multiple_of=2)] = 2048
     adc_bits: Literal[8, 10, 12, 14, 16] = 12
     full_well_e: PositiveFloat = 10_000.0
     gain_dn_per_e: PositiveFloat = 0.40
@@ -195,11 +218,11 @@ class SimLightConfig(_Strict):
 class SimLensConfig(_Strict):
     """Simulated optics (see labkit.sim.lens)."""
 
-    max_shift_px: float = 2.5
+    max_shift_px: FiniteFloat = 2.5
     reference_nm: Annotated[float, Field(ge=350, le=1000)] = 600.0
     spectral_profile: Literal["singlet", "achromat"] = "singlet"
     radial_profile: Literal["linear", "nonmonotonic"] = "linear"
-    centre_px: tuple[float, float] | None = None
+    centre_px: tuple[FiniteFloat, FiniteFloat] | None = None
     vignetting: Annotated[float, Field(ge=0, lt=1)] = 0.0
     blur_sigma_px: Annotated[float, Field(ge=0, le=10)] = 0.0
 
@@ -220,7 +243,7 @@ class SimSceneConfig(_Strict):
     radius_px: PositiveFloat | None = None
     pitch_px: PositiveFloat | None = None
     reflectances: str | None = None
-    seed: int | None = None
+    seed: Seed | None = None
     reflectance: Annotated[float, Field(ge=0, le=1)] | None = None
 
     @model_validator(mode="after")
@@ -242,7 +265,7 @@ class SimSceneConfig(_Strict):
 class SimConfig(_Strict):
     """Everything the simulated rig needs beyond the camera/slider description."""
 
-    seed: int = 0
+    seed: Seed = 0
     spectral_step_nm: Annotated[float, Field(gt=0, le=2)] = 1.0
     level_step_px: Annotated[float, Field(gt=0, le=1)] = 0.25
     readout_s: NonNegativeFloat = 0.05
@@ -425,7 +448,29 @@ def load_rig(path: str | Path) -> Rig:
         where = f" line {mark.line + 1}, column {mark.column + 1}" if mark else ""
         problem = getattr(error, "problem", None) or "invalid YAML"
         raise ConfigError(f"{path}:{where}: {problem}; fix the YAML syntax") from None
-    return rig_from_dict(data, source=str(path))
+    rig = rig_from_dict(data, source=str(path))
+    _check_response_file(rig, path)
+    return rig
+
+
+def _check_response_file(rig: Rig, path: Path) -> None:
+    """A response given as a file must exist; a relative path must stay in the rig's folder."""
+    value = rig.camera.response
+    if not value.lower().endswith((".csv", ".yaml", ".yml")):
+        return  # a dataset name: checked by `labkit rig check` and where it is used
+    given = Path(value)
+    folder = path.resolve().parent
+    resolved = Path(rig.response_source()).resolve()
+    if not given.is_absolute() and not resolved.is_relative_to(folder):
+        raise ConfigError(
+            f"{path}: camera.response {value!r} leads outside the rig file's folder "
+            f"({folder}); put the file beside the rig file, or give its absolute path"
+        )
+    if not resolved.is_file():
+        raise ConfigError(
+            f"{path}: camera.response {value!r} does not exist (looked for {resolved}); give "
+            "a response CSV or `labkit calibrate sensitivity` file, relative to the rig file"
+        )
 
 
 def default_rig_path() -> Path:

@@ -79,7 +79,10 @@ def check_raw(raw: np.ndarray, *, where: str = "the raw image") -> np.ndarray:
     """`raw` as float64 after checking it is a usable Bayer mosaic.
 
     Usable: a 2-D array of real numbers, even-sized, at least 8×8 px, finite, and with a
-    largest abs(value) of 0 or within [1e-30, 1e30] (:data:`MAX_RAW_MAGNITUDE`).
+    largest abs(value) of 0 or within [1e-30, 1e30] (:data:`MAX_RAW_MAGNITUDE`). A flat
+    image (zeros, a constant) is usable here and comes back flat; the file entry points
+    (``labkit reconstruct``) refuse images without usable light
+    (:func:`labkit.io.light.check_light`).
 
     `where` names the image in messages (e.g. its file).
     """

@@ -18,6 +18,7 @@ from labkit.cfa import channel_index
 from labkit.errors import DataError
 from labkit.fitting import principal_slope
 from labkit.io.exr import RawImage
+from labkit.io.light import check_light
 
 _RED, _GREEN, _BLUE = 0, 1, 2
 _NAMES = {_RED: "red", _BLUE: "blue"}
@@ -84,6 +85,7 @@ def channel_sensitivity(
             )
         if min(image.raw.shape) < 4:
             raise DataError(f"{source_of(image)}: image {image.raw.shape} is smaller than 4 × 4")
+        check_light(image.raw, name=source_of(image))
         bands.setdefault(round(float(image.wavelength_nm), 1), []).append(image)
 
     results = [
@@ -96,6 +98,7 @@ def channel_sensitivity(
         )
         for _, group in sorted(bands.items())
     ]
+    _check_results(results, bands)
     scenes = sorted({str(image.labkit["scene"]) for image in images if "scene" in image.labkit})
     return ChannelSensitivity(
         wavelengths_nm=np.array(sorted(bands)),
@@ -122,6 +125,22 @@ def channel_sensitivity(
             "sources": [source_of(image) for image in images],
         },
     )
+
+
+def _check_results(results: list[dict[str, Any]], bands: dict[float, list[RawImage]]) -> None:
+    """Refuse a band without a positive Green level; a reliable ratio must be positive."""
+    for result, (wavelength, group) in zip(results, sorted(bands.items()), strict=True):
+        level = result["green_level"]
+        if not (math.isfinite(level) and level > 0):
+            names = ", ".join(source_of(image) for image in group)
+            raise DataError(
+                f"the {wavelength:g} nm band ({names}) has no usable Green level ({level}): no "
+                "green pixel is lit, unsaturated and smooth; re-take it with an exposure that "
+                "leaves the green channel between black and saturation"
+            )
+        for fit in (result["r"], result["b"]):
+            if not fit.reasons and not (math.isfinite(fit.ratio) and fit.ratio > 0):
+                fit.reasons.append(f"fitted ratio {fit.ratio:.3g} is not positive")
 
 
 @dataclass

@@ -217,6 +217,15 @@ class ChannelSensitivity:
                     "the table cannot serve as a camera response; calibrate with images that "
                     "have signal in that band or leave the band out of the file"
                 )
+        known = np.isfinite(self.green_level) & (self.green_level > 0)
+        if known.any() and not known.all():
+            band = float(self.wavelengths_nm[~known][0])
+            raise DataError(
+                f"sensitivity {self.source}: the Green level at {band:g} nm is missing or not "
+                "positive while other bands have one, so the bands' scales would disagree; "
+                "calibrate that band again, or remove every green_level to use the thesis' "
+                "normalisation (G = 1 in each band)"
+            )
         level = self.relative_green_level if self.has_levels else np.ones(len(self))
         values = (
             np.column_stack([self.r_over_g, np.ones(len(self)), self.b_over_g]) * level[:, None]

@@ -312,6 +312,7 @@ def _prepare(args: argparse.Namespace) -> _Job:
             f"raw image {args.raw} does not exist; give a raw Bayer mosaic (raw EXR, "
             "single-channel TIFF/PNG or camera raw file)"
         )
+    from labkit.io.light import check_light
     from labkit.io.output_folder import verify_output_file
 
     verify_output_file(args.raw, what="raw image")
@@ -331,6 +332,7 @@ def _prepare(args: argparse.Namespace) -> _Job:
     else:
         raw = read_mosaic(args.raw, cfa=args.cfa)
     check_raw(raw.raw, where=f"raw image {args.raw}")
+    check_light(raw.raw, name=f"raw image {args.raw}", fix="give a raw image of a lit scene")
 
     response, source = None, None
     if rig is not None:

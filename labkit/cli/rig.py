@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from labkit.protocol.plan import build_plan
 from labkit.rig import Rig, load_rig
@@ -30,6 +31,7 @@ def plan_frame_count(rig: Rig) -> int:
 
 def _check(args: argparse.Namespace) -> int:
     rig = load_rig(args.rig)
+    _check_response(rig, args.rig)
     camera = rig.camera
     print(f"{args.rig}: valid rig '{rig.name}' (format {rig.format})")
     print(f"  camera  {camera.backend} device={camera.device or '(first found)'} "
@@ -51,3 +53,14 @@ def _check(args: argparse.Namespace) -> int:
               f"lens {lens.spectral_profile}/{lens.radial_profile} {lens.max_shift_px:g} px; "
               f"scenes {sorted(rig.sim.scenes)}")  # fmt: skip
     return 0
+
+
+def _check_response(rig: Rig, path: Path) -> None:
+    """The camera response loads (a dataset name that exists, a file that parses)."""
+    from calibration.sensitivity import load_response
+    from labkit.errors import ConfigError, DataError
+
+    try:
+        load_response(rig.response_source())
+    except DataError as error:
+        raise ConfigError(f"{path}: camera.response: {error}") from None

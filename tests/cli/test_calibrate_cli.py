@@ -152,3 +152,62 @@ def test_calibrate_is_a_command_group(capsys: pytest.CaptureFixture[str]) -> Non
         main(["calibrate", "--help"])
     assert exit_info.value.code == 0
     assert "sensitivity" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    ("damage", "match"),
+    [
+        ("nan", "1 NaN/Inf value"),
+        ("zeros", "holds no light"),
+        ("saturated", "are saturated"),
+        ("negated", "holds no light"),
+    ],
+)
+def test_degenerate_hdr_images_are_refused_and_nothing_is_written(
+    hdr_folder: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], damage: str, match: str
+) -> None:
+    path = hdr_folder / "chart" / "550.exr"
+    image = read_raw_exr(path)
+    raw = image.raw.copy()
+    if damage == "nan":
+        raw[3, 4] = np.nan
+    elif damage == "zeros":
+        raw[:] = 0
+    elif damage == "saturated":
+        raw[:] = 1.0
+    else:
+        raw = -raw
+    if damage == "nan":  # labkit's writer refuses NaN: write it as other software might
+        from labkit.io.exr import read_exr, write_exr
+
+        header, channels = read_exr(path)
+        channels["raw"] = raw.astype(np.float32)
+        keep = ("compression", "type", "labkit", "cfa", "exposure_s", "wavelength_nm")
+        write_exr(path, {k: v for k, v in header.items() if k in keep}, channels)
+    else:
+        image.raw = raw
+        write_raw_exr(path, image)
+    image.raw = raw
+    out = tmp_path / "calib"
+    assert main(["calibrate", "sensitivity", str(hdr_folder), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert str(path) in err and match in err and err.count("\n") == 1
+    assert not out.exists()
+    with pytest.raises(Exception, match=match):
+        channel_sensitivity([image])  # the Python API refuses it too
+
+
+def test_a_sensor_map_with_some_green_levels_missing_is_not_a_response(
+    hdr_folder: Path,
+) -> None:
+    from labkit.errors import DataError
+
+    table = channel_sensitivity(
+        [image for group in load_filtered_hdr(hdr_folder).values() for image in group]
+    )
+    assert table.has_levels
+    table.green_level[2] = np.nan
+    with pytest.raises(DataError, match=r"Green level at .* nm is missing"):
+        table.as_response()
+    table.green_level[:] = np.nan  # the thesis' convention: no levels at all, G = 1
+    np.testing.assert_allclose(table.as_response().values[:, 1], 1.0)

@@ -452,3 +452,22 @@ def test_the_python_api_writes_what_the_cli_writes(inputs, tmp_path: Path) -> No
     assert set(cli_log) - set(api_log) == {
         "command", "input", "raw", "rig", "response", "dispersion_model", "arguments",
         "options"}  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("values", "match"),
+    [
+        (lambda r: np.ones_like(r), "are saturated"),
+        (lambda r: -r, "holds no light"),
+        (lambda r: np.zeros_like(r), "holds no light"),
+    ],
+)
+def test_a_raw_without_usable_light_is_refused(tmp_path: Path, capsys, values, match) -> None:
+    raw = np.random.default_rng(5).uniform(0.1, 0.9, (32, 32)).astype(np.float32)
+    path = tmp_path / "raw.exr"
+    write_raw_exr(path, RawImage(values(raw), "GBRG", 0.01, "unfiltered"))
+    out = tmp_path / "out"
+    status = main(["reconstruct", str(path), "--response", "Nikon 5100 (NPL)", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert status == 2 and match in err and err.count("\n") == 1
+    assert not out.exists()

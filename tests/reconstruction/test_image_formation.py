@@ -209,7 +209,10 @@ def test_fourier_solver_refines_only_an_inaccurate_inverse() -> None:
     """Iterative refinement is taken only where the inverse's probe residual exceeds
     REFINE_RESIDUAL: well conditioned, the inverse is accurate and ``solve`` is the
     unrefined solve bit for bit; with a 1e-3 ridge alone (condition 4e6) it is not, and the
-    refined solve's residual is no larger (3.3e-10 against 3.8e-10)."""
+    refinement step lowers the blocks' residual (measured 2.1e-10 against 3.1e-10 on 1 and
+    2 threads). The residual of the real image after the inverse FFT is not compared: it is
+    set by rounding in the projection onto real images (1e-10 on one machine, 2.4e-5 on
+    another, where refinement then changes it by ±1 %), not by the refinement."""
     rng = np.random.default_rng(2)
     a = build_formation(latent_space(), (16, 16), "GBRG")
     b = rng.standard_normal(a.domain_shape)
@@ -226,7 +229,16 @@ def test_fourier_solver_refines_only_an_inaccurate_inverse() -> None:
     assert ridge._refine
     refined, unrefined = ridge.solve(b), ridge.solve(b, refine=False)
     assert not np.array_equal(refined, unrefined)
-    assert REFINE_RESIDUAL < residual(ridge, refined) <= residual(ridge, unrefined)
+    assert REFINE_RESIDUAL < residual(ridge, refined) < 1e-3
+    spectra = np.random.default_rng(3).standard_normal((2, *ridge._matrix.shape[:2], 1))
+    s = spectra[0] + 1j * spectra[1]
+    first = ridge._inverse @ s
+    step = first + ridge._inverse @ (s - ridge._matrix @ first)  # what solve() refines
+
+    def block_residual(y: np.ndarray) -> float:
+        return float(np.linalg.norm(ridge._matrix @ y - s) / np.linalg.norm(s))
+
+    assert block_residual(step) < 0.9 * block_residual(first)
 
 
 def test_mean_translation_operator_is_what_the_fourier_solver_inverts() -> None:
