@@ -13,7 +13,15 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from labkit.cfa import layout_from_pixel_format
 from labkit.errors import ConfigError, DataError
@@ -173,12 +181,10 @@ class AutoExposureConfig(_Strict):
 class PlanConfig(_Strict):
     """What to capture (thesis Algorithm 10)."""
 
-    scenes: list[Annotated[str, Field(min_length=1)]] = ["disks", "colorchecker"]
-
-    @field_validator("scenes")
-    @classmethod
-    def _plain_names(cls, value: list[str]) -> list[str]:
-        return [_plain_name(name) for name in value]
+    scenes: list[Annotated[str, Field(min_length=1), AfterValidator(_plain_name)]] = [
+        "disks",
+        "colorchecker",
+    ]
 
     illuminations: list[str] | Literal["all"] = "all"
     exposures_s: ExposureConfig = ExposureConfig()

@@ -88,7 +88,34 @@ def test_response_csv_is_relative_to_the_rig_file(
     data["camera"]["response"] = "responses/cam.csv"
     path = tmp_path / "rig.yaml"
     path.write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError, match=r"camera.response 'responses/cam.csv' does not exist"):
+        load_rig(path)
+    (tmp_path / "responses").mkdir()
+    (tmp_path / "responses" / "cam.csv").write_text("wavelength_nm,R,G,B\n")
     assert load_rig(path).response_source() == str(tmp_path / "responses" / "cam.csv")
+    data["camera"]["response"] = "../outside/cam.csv"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError, match="leads outside the rig file's folder"):
+        load_rig(path)
+
+
+@pytest.mark.parametrize(
+    ("response", "match"),
+    [("Nikon 9999", "unknown camera response 'Nikon 9999'"), ("bad.csv", "header is")],
+)
+def test_rig_check_loads_the_response(
+    tmp_path: Path, sim_rig_data: dict[str, Any], capsys, response: str, match: str
+) -> None:
+    from labkit.cli import main
+
+    data = copy.deepcopy(sim_rig_data)
+    data["camera"]["response"] = response
+    (tmp_path / "bad.csv").write_text("not,a,response\n1,2,3\n")
+    path = tmp_path / "rig.yaml"
+    path.write_text(yaml.safe_dump(data))
+    assert main(["rig", "check", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert str(path) in err and "camera.response" in err and match in err
 
 
 # -- malformed rigs -------------------------------------------------------------------------
@@ -194,6 +221,24 @@ MALFORMED: list[tuple[str, Mutation, str, str | None]] = [
         _set("slider", "positions", 3, "name", value="400"),
         "slider: position names must be unique",
         "'400', '400'",
+    ),
+    (
+        "infinite-exposure",
+        _set("plan", "exposures_s", "unfiltered", value=[float("inf")]),
+        "plan.exposures_s.unfiltered[0]",
+        "inf",
+    ),
+    ("nan-gain", _set("camera", "gain_db", value=float("nan")), "camera.gain_db", "nan"),
+    ("odd-width", _set("sim", "sensor", "width", value=97), "sim.sensor.width", "97"),
+    ("tiny-sensor", _set("sim", "sensor", "height", value=2), "sim.sensor.height", "2"),
+    ("negative-seed", _set("sim", "seed", value=-1), "sim.seed", "-1"),
+    ("slot-zero", _set("slider", "positions", 0, value={"name": "x"}), "slider.positions[0]", None),
+    ("escaping-scene", _set("plan", "scenes", value=["../../x"]), "plan.scenes[0]", "../../x"),
+    (
+        "hidden-position",
+        _set("slider", "positions", 2, "name", value=".400"),
+        "slider.positions[2].name",
+        ".400",
     ),
     (
         "scene-option-of-another-type",
