@@ -63,9 +63,15 @@ def _warp(args: argparse.Namespace) -> int:
         write_rgb_exr,
         write_spectral_exr,
     )
-    from labkit.io.output_folder import check_output_files, staged_output_files
+    from labkit.io.output_folder import (
+        check_output_files,
+        staged_output_files,
+        verify_output_file,
+    )
 
     check_output_files([args.out, args.out.with_suffix(".png")])
+    if args.image.is_file():
+        verify_output_file(args.image, what="image")
     model = load_dispersion_model(args.model)
     provenance = {"input": str(args.image), "dispersion_model": str(args.model)}
     try:

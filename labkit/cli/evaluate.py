@@ -81,10 +81,16 @@ def register(commands: argparse._SubParsersAction) -> None:
 def _evaluate(args: argparse.Namespace) -> int:
     from labkit.errors import DataError
     from labkit.io import read_mosaic
-    from labkit.io.output_folder import check_output_folder, staged_output_folder
+    from labkit.io.output_folder import (
+        check_output_folder,
+        staged_output_folder,
+        verify_output_file,
+    )
     from reconstruction import baseline_images, evaluate
 
     check_output_folder(args.out)
+    if args.raw.is_file():
+        verify_output_file(args.raw, what="raw image")
     raw = read_mosaic(args.raw, cfa=args.cfa)
     images_in = dict(_named_image(spec, raw.raw.shape) for spec in args.image)
     methods = [] if args.baselines == "none" else [m.strip() for m in args.baselines.split(",")]

@@ -218,7 +218,8 @@ def register(commands: argparse._SubParsersAction) -> None:
         default="threads",
         metavar="threads|processes|sync|tcp://HOST:PORT",
         help="Dask scheduler for the patches: local threads (default), local processes, "
-        "synchronous, or a dask.distributed scheduler's address",
+        "synchronous, or a dask.distributed scheduler's address (tcp:// is neither "
+        "authenticated nor encrypted: use it on a trusted network only)",
     )
     parser.add_argument(
         "--out",

@@ -220,7 +220,7 @@ def test_an_interrupted_rerun_leaves_the_previous_complete_set(captured, tmp_pat
     assert set(load_filtered_hdr(out)) == {"colorchecker"}
 
 
-def test_a_mixed_hdr_folder_is_refused_by_its_readers(captured, tmp_path):
+def test_a_mixed_hdr_folder_is_refused_by_its_readers(captured, tmp_path, capsys):
     from calibration import load_filtered_hdr
     from labkit.hdr import run_hdr
 
@@ -235,6 +235,15 @@ def test_a_mixed_hdr_folder_is_refused_by_its_readers(captured, tmp_path):
     (out / "colorchecker" / "550.exr").write_bytes(b"truncated")
     with pytest.raises(DataError, match=r"550.exr has changed size"):
         load_filtered_hdr(out)
+    changed = out / "colorchecker" / "unfiltered.exr"
+    changed.write_bytes(changed.read_bytes()[:-1] + b"\0")
+    for command in (
+        ["reconstruct", str(changed), "--response", "Nikon 5100 (NPL)"],
+        ["evaluate", str(changed), "--baselines", "bilinear"],
+    ):
+        assert main([*command, "--out", str(tmp_path / command[0])]) == 2
+        assert "has changed since the `labkit hdr` run" in capsys.readouterr().err
+        assert not (tmp_path / command[0]).exists()
 
 
 def test_two_sessions_merge_into_one_set_and_may_not_overlap(captured, tmp_path):
