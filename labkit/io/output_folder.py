@@ -85,14 +85,18 @@ def check_output_folder(out: str | Path, *, option: str = "--out") -> Path:
                 "run replaces its output folder as a whole, so choose a new folder or remove "
                 "this one"
             )
-    existing = out.parent
+    _check_creatable(out, f"{option} {out}: cannot create files under")
+    return out
+
+
+def _check_creatable(path: Path, message: str) -> None:
+    """Raise ConfigError unless `path` can be created: its nearest existing parent is a
+    writable folder. `message` starts the error; the parent and the fix follow."""
+    existing = path.parent
     while not existing.exists() and existing.parent != existing:
         existing = existing.parent
     if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
-        raise ConfigError(
-            f"{option} {out}: cannot create files under {existing}; choose a writable place"
-        )
-    return out
+        raise ConfigError(f"{message} {existing}; choose a writable place")
 
 
 # -- locking -------------------------------------------------------------------------------
@@ -269,14 +273,7 @@ def check_output_files(files: Sequence[str | Path], *, option: str = "--out") ->
                 f"{seen[real]}), one output over another; give {option} another name or suffix"
             )
         seen[real] = path
-        existing = path.parent
-        while not existing.exists() and existing.parent != existing:
-            existing = existing.parent
-        if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
-            raise ConfigError(
-                f"{option} {paths[0]}: cannot create {path} under {existing}; choose a "
-                "writable place"
-            )
+        _check_creatable(path, f"{option} {paths[0]}: cannot create {path} under")
     return paths
 
 
