@@ -133,6 +133,9 @@ def chunk_sizes(length: int, target: int) -> tuple[int, ...]:
 
 
 NOISE_BLOCK_PX = 16
+
+SCHEDULER_TIMEOUT_S = 20.0
+"""How long a ``tcp://`` Dask scheduler may take to connect and answer the handshake, s."""
 #: p95 of |a − b| for independent N(0, σ²) samples, in σ (1.96 √2), with 15 % allowance
 #: for :func:`noise_sigma`'s low-percentile estimate (≈ 0.91 σ on pure noise).
 _NOISE_P95 = 1.96 * np.sqrt(2.0) * 1.15
@@ -390,6 +393,44 @@ def reconstruct_patches(
     return full[pad : pad + rows, pad : pad + cols, :n], records
 
 
+def probe_scheduler(address: str, *, timeout_s: float | None = None) -> None:
+    """Check that a ``tcp://host:port`` Dask scheduler answers, within `timeout_s`.
+
+    A scheduler greets every new connection at once (its handshake); something that
+    accepts the connection and stays silent would make ``distributed.Client`` wait for
+    ever, so the greeting is awaited here with a deadline.
+
+    Raises
+    ------
+    DataError
+        Nothing listens there, or it does not greet within the deadline
+        (:data:`SCHEDULER_TIMEOUT_S` by default).
+    """
+    import socket
+
+    timeout_s = SCHEDULER_TIMEOUT_S if timeout_s is None else timeout_s
+    host, _, port = address.removeprefix("tcp://").rpartition(":")
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s) as s:
+            s.settimeout(timeout_s)
+            greeting = s.recv(1)
+    except TimeoutError:
+        raise DataError(
+            f"Dask scheduler {address} did not answer within {timeout_s:g} s; check that a "
+            "`dask scheduler` listens there, or use --scheduler threads"
+        ) from None
+    except (OSError, ValueError) as error:
+        raise DataError(
+            f"cannot reach the Dask scheduler {address} ({error}); start one "
+            "(`dask scheduler`) or use --scheduler threads"
+        ) from None
+    if not greeting:
+        raise DataError(
+            f"Dask scheduler {address} closed the connection without a greeting; is it a "
+            "`dask scheduler`?"
+        )
+
+
 def _compute(
     result: da.Array,
     scheduler: str | object | None,
@@ -401,7 +442,15 @@ def _compute(
     if isinstance(scheduler, str) and scheduler.startswith("tcp://"):
         from distributed import Client
 
-        with Client(scheduler) as client:
+        probe_scheduler(scheduler)
+        try:
+            client = Client(scheduler, timeout=SCHEDULER_TIMEOUT_S)
+        except (OSError, TimeoutError) as error:
+            raise DataError(
+                f"Dask scheduler {scheduler} did not answer within {SCHEDULER_TIMEOUT_S:g} s "
+                f"({error}); check that a `dask scheduler` listens there"
+            ) from None
+        with client:
             return client.compute(result).result()
     name = scheduler or "threads"
     if name not in ("threads", "processes", "sync", "synchronous", "single-threaded"):

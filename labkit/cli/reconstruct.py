@@ -386,12 +386,9 @@ def _scheduler(value: str) -> str:
             f"--scheduler is {value!r}; use {', '.join(SCHEDULERS)} or tcp://HOST:PORT "
             "(a dask.distributed scheduler)"
         )
-    import socket
+    from reconstruction.patches import probe_scheduler
 
-    try:
-        socket.create_connection((host.strip("[]"), int(port)), timeout=5).close()
-    except OSError as error:
-        raise ConfigError(_unreachable(value, error)) from None
+    probe_scheduler(value)
     return value
 
 

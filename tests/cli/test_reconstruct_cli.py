@@ -471,3 +471,37 @@ def test_a_raw_without_usable_light_is_refused(tmp_path: Path, capsys, values, m
     err = capsys.readouterr().err
     assert status == 2 and match in err and err.count("\n") == 1
     assert not out.exists()
+
+
+def test_a_scheduler_that_accepts_and_never_answers_is_an_error(
+    tmp_path: Path, monkeypatch, capsys
+) -> None:
+    """No hang: a tcp:// address that takes the connection and stays silent times out."""
+    import socket
+    import threading
+    import time
+
+    import reconstruction.patches
+
+    monkeypatch.setattr(reconstruction.patches, "SCHEDULER_TIMEOUT_S", 2.0)
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(8)
+    held: list[socket.socket] = []
+    accepting = threading.Thread(
+        target=lambda: [held.append(server.accept()[0]) for _ in range(8)], daemon=True
+    )
+    accepting.start()
+    raw = np.random.default_rng(6).uniform(0.1, 0.9, (32, 32)).astype(np.float32)
+    path = tmp_path / "raw.exr"
+    write_raw_exr(path, RawImage(raw, "GBRG", 0.01, "unfiltered"))
+    port = server.getsockname()[1]
+    start = time.monotonic()
+    status = main(["reconstruct", str(path), "--response", "Nikon 5100 (NPL)", "--weights",
+                   "fixed:0.01", "--scheduler", f"tcp://127.0.0.1:{port}",
+                   "--out", str(tmp_path / "out")])  # fmt: skip
+    err = capsys.readouterr().err
+    server.close()
+    assert status == 2 and "did not answer within 2 s" in err and err.count("\n") == 1
+    assert time.monotonic() - start < 60
+    assert not (tmp_path / "out").exists()
