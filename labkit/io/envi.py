@@ -131,8 +131,12 @@ def read_envi(path: str | Path) -> SpectralImage:
     envi = _spectral_envi()
     try:
         opened = envi.open(str(header))
-        values = np.asarray(opened.load(dtype=np.float32, scale=False), dtype=np.float32)
     except Exception as error:  # Spectral Python raises several kinds on bad headers
+        raise DataError(f"{header} is not a readable ENVI image ({error})") from None
+    _check_data_size(header, opened)
+    try:
+        values = np.asarray(opened.load(dtype=np.float32, scale=False), dtype=np.float32)
+    except Exception as error:
         raise DataError(f"{header} is not a readable ENVI image ({error})") from None
     metadata = {key.lower(): value for key, value in opened.metadata.items()}
     if "wavelength" not in metadata:
@@ -145,6 +149,12 @@ def read_envi(path: str | Path) -> SpectralImage:
             f"{header}: wavelength units {unit!r} are not understood; use Nanometers or Micrometers"
         )
     wavelengths = np.asarray([float(w) for w in metadata["wavelength"]]) * _NM_PER_UNIT[unit]
+    bands = 1 if values.ndim == 2 else values.shape[2]
+    if wavelengths.size != bands:
+        raise DataError(
+            f"{header}: the header lists {wavelengths.size} wavelengths for {bands} bands; "
+            "give one wavelength per band"
+        )
     if values.ndim == 2:
         values = values[:, :, None]
     order = np.argsort(wavelengths)
@@ -161,6 +171,24 @@ def read_envi(path: str | Path) -> SpectralImage:
     except DataError as error:
         raise DataError(f"{header}: {error}") from None
     return SpectralImage(cube, wavelengths, provenance)
+
+
+def _check_data_size(header: Path, opened: Any) -> None:
+    """The data file holds exactly what the header describes (size, type, offset)."""
+    data = Path(opened.filename)
+    dtype = np.dtype(opened.dtype)
+    expected = (
+        int(opened.offset)
+        + int(opened.nrows) * int(opened.ncols) * int(opened.nbands) * dtype.itemsize
+    )
+    actual = data.stat().st_size
+    if actual != expected:
+        raise DataError(
+            f"{header}: its data file {data.name} is {actual} bytes, but the header describes "
+            f"{opened.nrows}×{opened.ncols}×{opened.nbands} values of {dtype} "
+            f"({expected} bytes with the header offset); the header does not match the data "
+            "(check 'data type', 'lines', 'samples', 'bands' and 'header offset')"
+        )
 
 
 def _spectral_envi() -> Any:

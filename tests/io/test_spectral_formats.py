@@ -218,3 +218,22 @@ def test_export_command_converts_both_ways(tmp_path: Path, capsys: pytest.Captur
     assert "ENVI files end in .hdr" in capsys.readouterr().err
     assert main(["export", str(source), "--to", "exr"]) == 2
     assert "reads an ENVI header" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("edit", "match"),
+    [
+        (lambda text: text.replace("data type = 4", "data type = 5"), r"is 240 bytes, .*float64"),
+        (lambda text: text.replace("bands = 3", "bands = 2"), r"is 240 bytes, .*4×5×2"),
+        (lambda text: text.replace("0.45 , ", "").replace("0.45,", ""), "2 wavelengths for 3"),
+    ],
+)
+def test_envi_headers_that_contradict_their_data_are_refused(tmp_path: Path, edit, match):
+    values = np.random.default_rng(3).random((4, 5, 3)).astype(np.float32)
+    header = tmp_path / "cube.hdr"
+    envi.save_image(str(header), values, dtype=np.float32,
+                    metadata={"wavelength": ["0.45", "0.55", "0.65"],
+                              "wavelength units": "Micrometers"})  # fmt: skip
+    header.write_text(edit(header.read_text()))
+    with pytest.raises(DataError, match=match):
+        read_envi(header)
