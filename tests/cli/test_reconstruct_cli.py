@@ -505,3 +505,26 @@ def test_a_scheduler_that_accepts_and_never_answers_is_an_error(
     assert status == 2 and "did not answer within 2 s" in err and err.count("\n") == 1
     assert time.monotonic() - start < 60
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(
+    ("option", "content", "message"),
+    [
+        ("--response", b"\x89PNG\r\n\x1a\n\xff\xfe\x00", "cannot be read as text"),
+        ("--response", b"wavelength_nm,R,G,B\n400,nan,1,1\n500,1,1,1\n", "NaN or Inf"),
+        ("--response", b"wavelength_nm,R,G,B\n400,1,1\n500,1,1,1\n", "ragged row"),
+        ("--dispersion", b"\xff\xfe\x00\x01" * 16, "cannot be read as YAML text"),
+    ],
+)
+def test_binary_or_malformed_side_files_are_clear_errors(
+    inputs, tmp_path: Path, capsys, option: str, content: bytes, message: str
+) -> None:
+    side = tmp_path / ("side.csv" if option == "--response" else "side.yaml")
+    side.write_bytes(content)
+    response = [] if option == "--response" else ["--response", str(inputs["response"])]
+    out = tmp_path / "out"
+    status = main(["reconstruct", str(inputs["grey"]), *response, option, str(side),
+                   "--out", str(out)])  # fmt: skip
+    err = capsys.readouterr().err
+    assert status == 2 and message in err and str(side) in err and err.count("\n") == 1
+    assert not out.exists()
