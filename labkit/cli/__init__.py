@@ -21,6 +21,7 @@ import signal
 import sys
 import threading
 import traceback
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -92,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "handler", None):
         parser.print_help()
         return 0 if args.command is None else 2
-    previous = _terminate_as_exit()
+    restore = _terminate_as_exit()
     try:
         status = int(args.handler(args) or 0)
         sys.stdout.flush()  # a closed pipe is reported here, not at interpreter exit
@@ -121,22 +122,24 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as error:
         return _crash(args, error)
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
+        restore()
 
 
 class _Terminated(BaseException):
     """SIGTERM, raised in the main thread so that clean-up (``finally``) runs."""
 
 
-def _terminate_as_exit() -> Any:
+def _terminate_as_exit() -> Callable[[], None]:
+    """Make SIGTERM raise :class:`_Terminated`; returns what puts the previous handling back."""
     if threading.current_thread() is not threading.main_thread():
-        return None
+        return lambda: None  # signals are only for the main thread
 
     def handler(signum: int, frame: Any) -> None:
         raise _Terminated
 
-    return signal.signal(signal.SIGTERM, handler)
+    previous = signal.signal(signal.SIGTERM, handler)
+    default = signal.SIG_DFL if previous is None else previous  # None: not set from Python
+    return lambda: signal.signal(signal.SIGTERM, default)
 
 
 def _fail(message: str) -> int:
@@ -211,10 +214,8 @@ def _write_crash_log(args: argparse.Namespace, text: str) -> Path | None:
 
 
 def _silence_stdout() -> None:
+    import contextlib
     import os
 
-    try:
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
-    except (OSError, ValueError):
-        pass
+    with contextlib.suppress(OSError, ValueError):
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())

@@ -15,13 +15,6 @@ import argparse
 import math
 from pathlib import Path
 
-from labkit.io.output_folder import (
-    check_output_files,
-    check_output_folder,
-    staged_output_files,
-    staged_output_folder,
-)
-
 
 def register(commands: argparse._SubParsersAction) -> None:
     """Add ``labkit calibrate …``."""
@@ -167,6 +160,7 @@ def _sensitivity(args: argparse.Namespace) -> int:
         nominal_channel_sensitivity,
         plot_channel_sensitivity,
     )
+    from labkit.io.output_folder import check_output_folder, staged_output_folder
 
     check_output_folder(args.out)
     scenes = load_filtered_hdr(args.hdr, scenes=args.scene)
@@ -227,6 +221,7 @@ def _vignetting(args: argparse.Namespace) -> int:
     from calibration.plots import plot_vignetting
     from calibration.vignetting import fit_vignetting
     from labkit.errors import DataError
+    from labkit.io.output_folder import check_output_files, staged_output_files
 
     plot = args.out.with_suffix(".png")
     check_output_files([args.out, plot])
@@ -248,7 +243,6 @@ def _vignetting(args: argparse.Namespace) -> int:
     model = fit_vignetting(
         image.raw, cfa=image.cfa, mask=mask, max_degree=args.max_degree, name=name
     )
-    plot = args.out.with_suffix(".png")
     with staged_output_files([args.out, plot], command="labkit calibrate vignetting") as staged:
         model.save(staged[0])
         plot_vignetting(model, staged[1])
@@ -281,6 +275,7 @@ def _dispersion(args: argparse.Namespace) -> int:
         summary,
     )
     from calibration.plots import plot_keypoint_residuals, plot_model
+    from labkit.io.output_folder import check_output_files, staged_output_files
 
     outputs = [args.out, *(args.out.with_suffix(s) for s in _DISPERSION_COMPANIONS)]
     check_output_files(outputs)

@@ -265,12 +265,11 @@ def plan_sessions(
     folders = [session_dirs] if isinstance(session_dirs, str | Path) else list(session_dirs)
     if not folders:
         raise DataError("no session to merge; give at least one session folder")
-    seen_folders: dict[str, Path] = {}
+    seen: set[Path] = set()
     for folder in map(Path, folders):
-        real = str(folder.resolve())
-        if real in seen_folders:
+        if folder.resolve() in seen:
             raise DataError(f"session {folder} is given twice; give each session once")
-        seen_folders[real] = folder
+        seen.add(folder.resolve())
     many = len(folders) > 1
     plans = [
         plan_hdr(

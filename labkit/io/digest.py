@@ -21,7 +21,7 @@ def file_sha256(path: str | Path) -> str:
 
 
 def read_verified(path: str | Path, *, sha256: str, size: int | None, name: str) -> bytes:
-    """A file's bytes, hashed as they are read and checked against its recorded checksum.
+    """A file's bytes, read once and checked against its recorded size and checksum.
 
     Parameters
     ----------
@@ -48,18 +48,14 @@ def read_verified(path: str | Path, *, sha256: str, size: int | None, name: str)
                     f"{name} is {actual} bytes but {size} were recorded: the file was changed "
                     "or replaced after capture"
                 )
-            digest = hashlib.sha256()
-            blocks = []
-            while chunk := handle.read(_BLOCK):
-                digest.update(chunk)
-                blocks.append(chunk)
+            data = handle.read()
     except FileNotFoundError:
         raise DataError(f"{name} is missing") from None
     except IsADirectoryError:
         raise DataError(f"{name} is a folder, not a file") from None
-    if digest.hexdigest() != sha256:
+    if hashlib.sha256(data).hexdigest() != sha256:
         raise DataError(
             f"{name} does not match its recorded sha256: the file was changed or replaced "
             "after capture"
         )
-    return b"".join(blocks)
+    return data

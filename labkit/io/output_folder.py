@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
-import ctypes.util
 import datetime as dt
 import errno
 import fcntl
@@ -224,30 +223,20 @@ def staged_output_folder(
         The disk is full or the folder cannot be written: nothing was changed.
     """
     out = check_output_folder(out, option=option)
-    with writer_lock(out, command=command, option=option):
-        started = _now()
-        out.parent.mkdir(parents=True, exist_ok=True)
-        _remove_stale_staging(out)
-        staging = Path(tempfile.mkdtemp(prefix=f".{out.name}{_STAGING}", dir=out.parent))
-        try:
-            with _disk_errors(out, option):
-                yield staging
-                manifest = _manifest(staging, command=command, started=started, details=details)
-                text = json.dumps(manifest, indent=1, ensure_ascii=False) + "\n"
-                with open(staging / RUN_MANIFEST, "w", encoding="utf-8") as handle:
-                    handle.write(text)
-                    handle.flush()
-                    os.fsync(handle.fileno())
-                os.chmod(staging, 0o777 & ~process_umask())
-                _fsync(staging)
-                check_output_folder(out, option=option)  # unchanged while we worked?
-                old = _put_in_place(staging, out)
-        except BaseException:
-            shutil.rmtree(staging, ignore_errors=True)
-            raise
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
-        _fsync(out.parent)
+    started = _now()
+    with _staging(out, command=command, option=option) as staging:
+        yield staging
+        manifest = _manifest(staging, command=command, started=started, details=details)
+        text = json.dumps(manifest, indent=1, ensure_ascii=False) + "\n"
+        with open(staging / RUN_MANIFEST, "w", encoding="utf-8") as handle:
+            handle.write(text)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.chmod(staging, 0o777 & ~process_umask())
+        _fsync(staging)
+        check_output_folder(out, option=option)  # unchanged while we worked?
+        _put_in_place(staging, out)
+    _fsync(out.parent)
 
 
 def check_output_files(files: Sequence[str | Path], *, option: str = "--out") -> list[Path]:
@@ -299,25 +288,33 @@ def staged_output_files(
     """
     paths = check_output_files(files, option=option)
     primary = paths[0]
-    with writer_lock(primary, command=command, option=option):
-        primary.parent.mkdir(parents=True, exist_ok=True)
-        _remove_stale_staging(primary)
-        staging = Path(tempfile.mkdtemp(prefix=f".{primary.name}{_STAGING}", dir=primary.parent))
+    with _staging(primary, command=command, option=option) as staging:
         staged = [staging / f"{i}{path.suffix}" for i, path in enumerate(paths)]
+        yield staged
+        if not staged[0].is_file():
+            raise RuntimeError(f"the run wrote no {primary}")
+        for path in paths:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        for temp, path in reversed(list(zip(staged, paths, strict=True))):
+            if temp.exists():
+                _move_into_place(temp, path)
+            else:
+                path.unlink(missing_ok=True)  # an earlier run's companion
+        for folder in {path.parent for path in paths}:
+            _fsync(folder)
+
+
+@contextlib.contextmanager
+def _staging(target: Path, *, command: str, option: str) -> Iterator[Path]:
+    """A hidden staging folder beside `target`, under its writer lock; removed on every exit
+    (after a swap it holds the previous content). Disk errors become DataErrors."""
+    with writer_lock(target, command=command, option=option):
+        target.parent.mkdir(parents=True, exist_ok=True)
+        _remove_stale_staging(target)
+        staging = Path(tempfile.mkdtemp(prefix=f".{target.name}{_STAGING}", dir=target.parent))
         try:
-            with _disk_errors(primary, option):
-                yield staged
-                if not staged[0].is_file():
-                    raise RuntimeError(f"the run wrote no {primary}")
-                for path in paths:
-                    path.parent.mkdir(parents=True, exist_ok=True)
-                for temp, path in reversed(list(zip(staged, paths, strict=True))):
-                    if temp.exists():
-                        _move_into_place(temp, path)
-                    else:
-                        path.unlink(missing_ok=True)  # an earlier run's companion
-                for folder in {path.parent for path in paths}:
-                    _fsync(folder)
+            with _disk_errors(target, option):
+                yield staging
         finally:
             shutil.rmtree(staging, ignore_errors=True)
 
@@ -334,17 +331,16 @@ def _move_into_place(temp: Path, path: Path) -> None:
             shutil.copyfile(temp, beside)
 
 
-def _put_in_place(staging: Path, out: Path) -> Path | None:
-    """Rename `staging` to `out`; returns where the previous `out` now is, if any."""
+def _put_in_place(staging: Path, out: Path) -> None:
+    """Rename `staging` to `out`. The previous `out` ends up at `staging` (removed by
+    :func:`_staging`), through one atomic exchange where the system has it."""
     if not out.exists():
         os.rename(staging, out)
-        return None
-    if _exchange(staging, out):
-        return staging
-    aside = Path(tempfile.mkdtemp(prefix=f".{out.name}{_STAGING}old-", dir=out.parent))
-    os.rename(out, aside / "old")
-    os.rename(staging, out)
-    return aside
+    elif not _exchange(staging, out):
+        aside = staging.with_name(f"{staging.name}-new")
+        os.rename(staging, aside)
+        os.rename(out, staging)
+        os.rename(aside, out)
 
 
 _RENAME_EXCHANGE = 2
@@ -353,10 +349,7 @@ _AT_FDCWD = -100
 
 def _exchange(a: Path, b: Path) -> bool:
     """Swap two paths atomically (Linux ``renameat2``); False where it is not available."""
-    libc_name = ctypes.util.find_library("c")
-    if libc_name is None:
-        return False
-    libc = ctypes.CDLL(libc_name, use_errno=True)
+    libc = ctypes.CDLL(None, use_errno=True)  # the process' own symbols, libc's among them
     renameat2 = getattr(libc, "renameat2", None)
     if renameat2 is None:
         return False
