@@ -89,7 +89,10 @@ UNEXPECTED = 3
 def main(argv: list[str] | None = None) -> int:
     """Run the ``labkit`` command line; return the exit status."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exit:  # a bad option (argparse printed it), --help, --version
+        return exit.code if isinstance(exit.code, int) else EXPECTED
     if not getattr(args, "handler", None):
         parser.print_help()
         return 0 if args.command is None else 2

@@ -42,8 +42,9 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from labkit.errors import DataError
+    from labkit.errors import ConfigError, DataError
     from labkit.io import read_envi, read_spectral_exr, write_envi, write_spectral_exr
+    from labkit.io.output_folder import check_output_files, writer_lock
 
     source: Path = args.image
     reading_envi = source.suffix.lower() == ".hdr"
@@ -55,13 +56,22 @@ def _export(args: argparse.Namespace) -> int:
     out: Path = args.out if args.out is not None else source.with_suffix(suffix)
     if out.suffix.lower() != suffix:
         raise DataError(f"--out {out}: {args.to.upper()} files end in {suffix}")
-    image = read_envi(source) if reading_envi else read_spectral_exr(source)
-    if args.to == "envi":
-        data = write_envi(out, image, description=f"exported from {source.name}")
-        print(f"wrote {out} and {data.name}: {_summary(image)}")
-    else:
-        write_spectral_exr(out, image)
-        print(f"wrote {out}: {_summary(image)}")
+    outputs = [out, out.with_suffix(".img")] if args.to == "envi" else [out]
+    check_output_files(outputs)
+    for path in outputs:
+        if path.exists() and path.resolve() == source.resolve():
+            raise ConfigError(
+                f"--out {out}: this export would write {path} over its own input {source}; "
+                "give --out another name"
+            )
+    with writer_lock(out, command="labkit export"):
+        image = read_envi(source) if reading_envi else read_spectral_exr(source)
+        if args.to == "envi":
+            data = write_envi(out, image, description=f"exported from {source.name}")
+            print(f"wrote {out} and {data.name}: {_summary(image)}")
+        else:
+            write_spectral_exr(out, image)
+            print(f"wrote {out}: {_summary(image)}")
     return 0
 
 

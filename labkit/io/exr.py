@@ -13,6 +13,8 @@ All are written atomically: a crash never leaves a partial file under the final 
 
 from __future__ import annotations
 
+import errno
+
 import json
 import math
 from dataclasses import dataclass, field
@@ -174,7 +176,26 @@ def write_exr(path: str | Path, header: dict[str, Any], channels: dict[str, np.n
     import OpenEXR
 
     with atomic_path(path) as temp:
-        OpenEXR.File(header, channels).write(str(temp))
+        try:
+            OpenEXR.File(header, channels).write(str(temp))
+        except RuntimeError as error:  # the binding reports system errors as bare text
+            raise _system_error(error, temp) from None
+
+
+_SYSTEM_ERROR_TEXTS = {
+    "No space left on device": errno.ENOSPC,
+    "Disk quota exceeded": errno.EDQUOT,
+    "Read-only file system": errno.EROFS,
+    "Permission denied": errno.EACCES,
+}
+
+
+def _system_error(error: RuntimeError, path: Path) -> Exception:
+    """The OSError behind an OpenEXR RuntimeError's text, so that a full disk reads as one."""
+    for text, code in _SYSTEM_ERROR_TEXTS.items():
+        if text in str(error):
+            return OSError(code, text, str(path))
+    return error
 
 
 def read_exr(path: str | Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:

@@ -403,7 +403,7 @@ def _read_manifest(path: Path, *, repair: bool) -> dict[str, dict]:
     except OSError as error:
         raise DataError(f"{path} cannot be read ({error.strerror})") from None
     lines = data.split(b"\n")
-    if lines and lines[-1]:  # no trailing newline: the last append was torn by a crash
+    if lines and lines[-1] and _torn_append(lines[-1]):  # a crash cut the last append
         if repair:
             torn = len(data) - len(lines[-1])
             with open(path, "r+b") as handle:
@@ -432,6 +432,12 @@ def _read_manifest(path: Path, *, repair: bool) -> dict[str, dict]:
             )
         records[record["key"]] = record
     return records
+
+
+def _torn_append(line: bytes) -> bool:
+    """Whether a last line without its newline is the start of a record (JSON objects are
+    written as ASCII) rather than damage, which must not be skipped silently."""
+    return line.startswith(b"{") and line.isascii()
 
 
 _RECORD_TYPES: dict[str, tuple[type, ...]] = {
