@@ -162,7 +162,7 @@ def _sensitivity(args: argparse.Namespace) -> int:
     )
     from labkit.io.output_folder import check_output_folder, staged_output_folder
 
-    check_output_folder(args.out)
+    check_output_folder(args.out, command="labkit calibrate sensitivity")
     scenes = load_filtered_hdr(args.hdr, scenes=args.scene)
     images = [image for group in scenes.values() for image in group]
     rig = _images_rig(args.rig, images, default=True)

@@ -88,7 +88,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     )
     from reconstruction import baseline_images, evaluate
 
-    check_output_folder(args.out)
+    check_output_folder(args.out, command="labkit evaluate")
     if args.raw.is_file():
         verify_output_file(args.raw, what="raw image")
     raw = read_mosaic(args.raw, cfa=args.cfa)

@@ -458,7 +458,7 @@ def _check_out(out: Path) -> None:
     """The output folder can be written (:func:`check_output_folder`); nothing is created."""
     from labkit.io.output_folder import check_output_folder
 
-    check_output_folder(out)
+    check_output_folder(out, command="labkit reconstruct")
 
 
 def _response(source: str, where: str) -> Any:

@@ -45,7 +45,7 @@ def _synthesize(args: argparse.Namespace) -> int:
     )
     from labkit.io.output_folder import check_output_folder, staged_output_folder
 
-    check_output_folder(args.out)
+    check_output_folder(args.out, command="labkit synthesize")
     sensitivity = ChannelSensitivity.from_file(args.sensitivity)
     scenes = load_filtered_hdr(args.hdr, scenes=args.scene)
     lines = []

@@ -52,12 +52,15 @@ _HELD_GUARD = threading.Lock()
 
 
 # -- checking ------------------------------------------------------------------------------
-def check_output_folder(out: str | Path, *, option: str = "--out") -> Path:
+def check_output_folder(
+    out: str | Path, *, option: str = "--out", command: str | None = None
+) -> Path:
     """Raise unless `out` can become a run's output folder; nothing is created.
 
     It can if it is absent (and its nearest existing parent is a writable folder), an empty
-    folder, or a folder that a labkit run wrote (it holds a run manifest): the run replaces
-    it as a whole.
+    folder, or a folder that a labkit run of the same `command` wrote (it holds a run
+    manifest): the run replaces it as a whole. Another command's folder (e.g. the HDR
+    folder a calibration reads) is refused.
 
     Raises
     ------
@@ -84,8 +87,28 @@ def check_output_folder(out: str | Path, *, option: str = "--out") -> Path:
                 "run replaces its output folder as a whole, so choose a new folder or remove "
                 "this one"
             )
+        if entries and command is not None:
+            manifest = read_run_manifest(out) or {}
+            if _program(str(manifest.get("command"))) != _program(command):
+                raise ConfigError(
+                    f"{option} {out} holds the outputs of `{manifest.get('command', 'another')}`"
+                    f", not of `{command}`; a run replaces its output folder as a whole, so "
+                    "choose a new folder"
+                )
+    _check_not_inside_another_set(out, option)
     _check_creatable(out, f"{option} {out}: cannot create files under")
     return out
+
+
+def _program(command: str) -> str:
+    """A command without its options or a "(Python)" note: ``labkit demo --real`` →
+    ``labkit demo``."""
+    words = []
+    for word in command.split():
+        if word.startswith(("-", "(")):
+            break
+        words.append(word)
+    return " ".join(words)
 
 
 def _check_creatable(path: Path, message: str) -> None:
@@ -222,7 +245,7 @@ def staged_output_folder(
     DataError
         The disk is full or the folder cannot be written: nothing was changed.
     """
-    out = check_output_folder(out, option=option)
+    out = check_output_folder(out, option=option, command=command)
     started = _now()
     with _staging(out, command=command, option=option) as staging:
         yield staging
@@ -234,7 +257,7 @@ def staged_output_folder(
             os.fsync(handle.fileno())
         os.chmod(staging, 0o777 & ~process_umask())
         _fsync(staging)
-        check_output_folder(out, option=option)  # unchanged while we worked?
+        check_output_folder(out, option=option, command=command)  # unchanged meanwhile?
         _put_in_place(staging, out)
     _fsync(out.parent)
 
@@ -262,8 +285,25 @@ def check_output_files(files: Sequence[str | Path], *, option: str = "--out") ->
                 f"{seen[real]}), one output over another; give {option} another name or suffix"
             )
         seen[real] = path
+        _check_not_inside_another_set(path, option)
         _check_creatable(path, f"{option} {paths[0]}: cannot create {path} under")
     return paths
+
+
+def _check_not_inside_another_set(path: Path, option: str, levels: int = 4) -> None:
+    """Refuse writing into a labkit run folder or a session (their manifests list what they
+    hold, so a file added or replaced there would damage them, e.g. an input image)."""
+    for parent in list(Path(os.path.abspath(path)).parents)[:levels]:
+        owner = None
+        if (parent / RUN_MANIFEST).is_file():
+            owner = "the output folder of a labkit run"
+        elif (parent / "session.yaml").is_file():
+            owner = "a labkit session"
+        if owner:
+            raise ConfigError(
+                f"{option} {path} lies inside {parent}, {owner}, whose files are listed in its "
+                "manifest; write it somewhere else"
+            )
 
 
 @contextlib.contextmanager

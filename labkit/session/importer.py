@@ -230,7 +230,7 @@ def import_session(
         black_level=black_level,
     )
     origin = [str(s.resolve()) for s in sources]
-    check_output_folder(folder, option="session folder")
+    check_output_folder(folder, option="session folder", command="labkit session import")
     Session.check_creatable(folder)
     with staged_output_folder(folder, command="labkit session import", option="session") as stage:
         session = Session.create(

@@ -207,7 +207,7 @@ class Probe:
         else:
             if outcome.status != 0:
                 return "silent wrong result (exit 0)", f"expected success: {outcome.err}"
-            for path in outputs:
+            for path in outputs[:1] + [p for p in outputs[1:] if p.exists()]:
                 problem = complete_problem(path)
                 if problem:
                     return "mixed or partial result", problem

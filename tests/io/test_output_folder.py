@@ -27,7 +27,7 @@ from labkit.io.output_folder import (
 )
 
 
-def _write_set(out: Path, files: dict[str, str], command: str = "test") -> None:
+def _write_set(out: Path, files: dict[str, str], command: str = "labkit holder") -> None:
     with staged_output_folder(out, command=command) as stage:
         for name, text in files.items():
             (stage / name).parent.mkdir(parents=True, exist_ok=True)
@@ -51,7 +51,7 @@ def test_a_set_is_written_with_a_manifest_that_verifies(tmp_path):
     _write_set(out, {"a.txt": "1", "sub/b.txt": "22"})
     assert _contents(out) == {"a.txt": "1", "sub/b.txt": "22"}
     manifest = verify_output_folder(out, what="test folder", rerun="the test")
-    assert manifest is not None and manifest["command"] == "test"
+    assert manifest is not None and manifest["command"] == "labkit holder"
     assert manifest["files"]["sub/b.txt"]["bytes"] == 2
     assert _siblings(out) == []  # no staging folder, no lock file left beside it
     assert oct(out.stat().st_mode & 0o777) != "0o700"  # not mkdtemp's private mode
@@ -74,7 +74,7 @@ def test_a_new_set_replaces_the_previous_one_as_a_whole(tmp_path, monkeypatch, e
 def test_a_failed_run_leaves_the_previous_set_and_no_staging(tmp_path, fail):
     out = tmp_path / "out"
     _write_set(out, {"a.txt": "previous"})
-    with pytest.raises(type(fail)), staged_output_folder(out, command="test") as stage:
+    with pytest.raises(type(fail)), staged_output_folder(out, command="labkit holder") as stage:
         (stage / "a.txt").write_text("new")
         raise fail
     assert _contents(out) == {"a.txt": "previous"}
@@ -84,7 +84,7 @@ def test_a_failed_run_leaves_the_previous_set_and_no_staging(tmp_path, fail):
 
 def test_a_failed_first_run_leaves_nothing(tmp_path):
     out = tmp_path / "out"
-    with pytest.raises(RuntimeError), staged_output_folder(out, command="test") as stage:
+    with pytest.raises(RuntimeError), staged_output_folder(out, command="labkit holder") as stage:
         (stage / "a.txt").write_text("new")
         raise RuntimeError
     assert not out.exists() and _siblings(out) == []
@@ -94,7 +94,7 @@ def test_a_full_disk_is_a_clear_error_that_keeps_the_previous_set(tmp_path):
     out = tmp_path / "out"
     _write_set(out, {"a.txt": "previous"})
     with pytest.raises(DataError, match=r"disk is full.*nothing was changed"):
-        with staged_output_folder(out, command="test") as stage:
+        with staged_output_folder(out, command="labkit holder") as stage:
             (stage / "a.txt").write_text("new")
             raise OSError(errno.ENOSPC, "No space left on device", str(stage / "b.txt"))
     assert _contents(out) == {"a.txt": "previous"}
@@ -291,3 +291,23 @@ def test_a_result_needs_its_primary_file(tmp_path):
     with pytest.raises(RuntimeError, match="wrote no"):
         _write_files([tmp_path / "model.yaml", tmp_path / "model.png"], [None, "plot"])
     assert list(tmp_path.iterdir()) == []
+
+
+def test_another_commands_folder_is_not_replaced(tmp_path):
+    out = tmp_path / "out"
+    _write_set(out, {"a.txt": "an HDR image"}, command="labkit hdr")
+    with pytest.raises(ConfigError, match="holds the outputs of `labkit hdr`"):
+        _write_set(out, {"b.txt": "a calibration"}, command="labkit calibrate sensitivity")
+    _write_set(out, {"a.txt": "rerun"}, command="labkit hdr --method thesis")  # same program
+    assert _contents(out) == {"a.txt": "rerun"}
+
+
+@pytest.mark.parametrize("owner", [RUN_MANIFEST, "session.yaml"])
+def test_nothing_is_written_inside_a_run_folder_or_a_session(tmp_path, owner):
+    folder = tmp_path / "owned"
+    (folder / "sub").mkdir(parents=True)
+    (folder / owner).write_text("{}")
+    with pytest.raises(ConfigError, match="lies inside"):
+        check_output_files([folder / "sub" / "model.yaml"])
+    with pytest.raises(ConfigError, match="lies inside"):
+        check_output_folder(folder / "sub" / "out")
