@@ -21,3 +21,14 @@ def add_cfa_option(parser: argparse.ArgumentParser, *, default: str = "") -> Non
         help=f"Bayer layout (top-left 2×2 block, row by row) of a raw mosaic that does not "
         f"record it{note}; an error if it contradicts the file's own",
     )
+
+
+def positive_int(text: str) -> int:
+    """An argparse type: an integer ≥ 1 (argparse names the option in its error)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{value} is not ≥ 1")
+    return value

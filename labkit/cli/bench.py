@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from labkit.cli._options import positive_int
+
 
 def register(commands: argparse._SubParsersAction) -> None:
     """Add ``labkit bench``."""
@@ -20,7 +22,9 @@ def register(commands: argparse._SubParsersAction) -> None:
     parser.add_argument("stage", choices=[*BENCHMARKS, "all"], help="what to benchmark")
     parser.add_argument("--out", type=Path, default=Path("bench-out"), help="output folder")
     parser.add_argument("--rig", type=Path, default=None, help="rig YAML (default: simulated rig)")
-    parser.add_argument("--repeats", type=int, default=3, help="repeats per case (median)")
+    parser.add_argument(
+        "--repeats", type=positive_int, default=3, help="repeats per case (median), ≥ 1"
+    )
     parser.add_argument(
         "--full",
         action=argparse.BooleanOptionalAction,

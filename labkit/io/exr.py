@@ -14,7 +14,6 @@ All are written atomically: a crash never leaves a partial file under the final 
 from __future__ import annotations
 
 import errno
-
 import json
 import math
 from dataclasses import dataclass, field

@@ -81,10 +81,19 @@ def parse_exposure(text: str) -> float:
     return float(match.group(1)) * _UNITS[match.group(2)]
 
 
+def _size(shape: tuple[int, ...]) -> str:
+    return "×".join(str(n) for n in shape)
+
+
 def illumination_resolver(rig: Rig, mapping: Mapping[str, str] | None = None):
     """A function mapping a file's illumination text to a rig slot name (or ``dark``)."""
     names = rig.slider.illumination_names()
     mapping = dict(mapping or {})
+    for text, slot in mapping.items():
+        if slot not in names and slot != DARK:
+            raise ConfigError(
+                f"--map {text}={slot}: {slot!r} is not a slot of the rig (slots: {names})"
+            )
     by_centre = {
         round(p.filter.centre_nm): p.name for p in rig.slider.positions.values() if p.filter
     }
@@ -222,6 +231,16 @@ def import_session(
         except Exception as error:  # tifffile raises many types on bad files
             raise DataError(f"{item.path} is not a readable TIFF ({error})") from None
         images[item.path], facts[item.path] = stored_samples(image, name=str(item.path))
+    shapes: dict[tuple[int, ...], list[Path]] = {}
+    for path, image in images.items():
+        shapes.setdefault(image.shape, []).append(path)
+    if len(shapes) > 1:
+        common = max(shapes, key=lambda shape: len(shapes[shape]))
+        odd = next(paths[0] for shape, paths in shapes.items() if shape != common)
+        raise DataError(
+            f"{odd} is {_size(images[odd].shape)} but most frames are {_size(common)}; the "
+            "frames of one session come from one sensor: move the odd files out of --from"
+        )
     formats = decide_formats(
         facts,
         pixel_format=rig.camera.pixel_format,

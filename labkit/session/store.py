@@ -470,7 +470,7 @@ def record_problem(record: dict[str, Any], folder: Path) -> str | None:
     if size is not None and (not isinstance(size, int) or size < 0):
         return f"bytes {size!r} is not a file size"
     names = [("illumination", record["illumination"])]
-    if not record["dark"]:
+    if not record["dark"] or record.get("scene") is not None:
         names.append(("scene", record.get("scene")))
     for what, name in names:
         why = path_name_problem(name)

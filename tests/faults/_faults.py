@@ -198,7 +198,8 @@ class Probe:
                     verdict = "destroyed result" if lost else "mixed or partial result"
                     return verdict, f"{path} changed on a failed run"
             lines = [
-                line for line in outcome.err.strip().splitlines()
+                line
+                for line in outcome.err.strip().splitlines()
                 if not line.startswith(("usage:", " "))  # argparse prints its usage first
             ]
             missing = [m for m in mentions if m not in outcome.err]
@@ -233,7 +234,7 @@ def complete_problem(path: Path) -> str:
     if path.is_dir() and (path / RUN_MANIFEST).is_file():
         try:
             verify_output_folder(path, what="output", rerun="rerun")
-        except Exception as error:  # noqa: BLE001 - the message is the finding
+        except Exception as error:
             return str(error)
     left = [name for name in leftovers(path.parent) if name.startswith(f".{path.name}.")]
     if left:
@@ -251,12 +252,15 @@ def ok(outcome: Outcome) -> None:
     assert outcome.verdict == "ok", f"{outcome.verdict}: {outcome.why}"
 
 
-# -- subprocess runs: kill -9 at a chosen point, a second writer --------------------------------
+# -- subprocess runs: kill -9 at a chosen point, a second writer -------------------------------
 _KILLER = textwrap.dedent(
     """
     import importlib, os, signal, sys
     module, attribute, when, n = sys.argv[1:5]
     target = importlib.import_module(module)
+    *owners, attribute = attribute.split(".")  # "Class.method" patches the class
+    for owner in owners:
+        target = getattr(target, owner)
     original = getattr(target, attribute)
     calls = [0]
     def killer(*args, **kwargs):
@@ -314,7 +318,7 @@ def another_writer(target: Path) -> Iterator[subprocess.Popen]:
         holder.wait()
 
 
-# -- full and read-only file systems ------------------------------------------------------------
+# -- full and read-only file systems -----------------------------------------------------------
 def _mount(*args: str) -> bool:
     if os.geteuid() != 0 or shutil.which("mount") is None:
         return False
@@ -368,7 +372,7 @@ def wait_for(predicate, timeout: float = 30.0) -> None:
 
 
 # -- the verdict table -------------------------------------------------------------------------
-def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:  # noqa: ARG001
+def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:
     table: Counter[tuple[str, str]] = Counter()
     kinds: dict[str, set[str]] = {}
     for reports in terminalreporter.stats.values():

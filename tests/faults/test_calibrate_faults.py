@@ -38,7 +38,7 @@ def companions(out: Path) -> list[Path]:
     return [out.with_name(out.stem + n) for n in names]
 
 
-# -- mixed, incomplete or tampered run folders ------------------------------------------------------
+# -- mixed, incomplete or tampered run folders -------------------------------------------------
 def _image(w: Path, scene: str = "disks", illumination: str = "600") -> Path:
     return w / "H" / scene / f"{illumination}.exr"
 
@@ -95,7 +95,7 @@ def test_a_mixed_or_incomplete_hdr_folder_is_refused(probe, workspace, command, 
     ok(outcome)
 
 
-# -- degenerate images in a hand-assembled folder (no run manifest) -----------------------------
+# -- degenerate images in a hand-assembled folder (no run manifest) ----------------------------
 def _degrade(how: str):
     def spoil(w: Path) -> None:
         (w / "H" / RUN_MANIFEST).unlink()  # assembled by hand: the content checks must act
@@ -131,11 +131,10 @@ def test_a_degenerate_image_is_refused_where_it_enters(probe, workspace, command
     ok(outcome)
 
 
-# -- outputs -----------------------------------------------------------------------------------------
+# -- outputs -----------------------------------------------------------------------------------
 def _out_cases(command: str) -> dict:
     _, default_out = COMMANDS[command]
     if default_out.endswith(".yaml"):
-        folder = default_out.split("/")[0]
         return {
             "--out an existing folder": (lambda w: (w / "X.yaml").mkdir(), "X.yaml", ["folder"]),
             "--out named like its plot": (lambda w: (w / "X.png").write_text("old"), "X.png",

@@ -185,7 +185,7 @@ def test_a_bad_session_is_refused_and_nothing_is_written(probe, workspace, name)
     assert not list(workspace.parent.glob("*escaped*"))
 
 
-# -- bad outputs and options ---------------------------------------------------------------------
+# -- bad outputs and options -------------------------------------------------------------------
 def _out_file(w):
     (w / "H2").write_text("precious")
 
@@ -233,7 +233,7 @@ def test_bad_options_are_refused(probe, workspace, options, mentions):
     ok(outcome)
 
 
-# -- a rerun replaces the set; interruption leaves the previous or the new set ------------------
+# -- a rerun replaces the set; interruption leaves the previous or the new set -----------------
 def test_a_rerun_with_another_method_replaces_the_whole_set(probe, workspace):
     outcome = probe.case(HDR, "rerun").run(
         _hdr(workspace, "--method", "thesis", out="H"), outputs=[workspace / "H"], expect="ok"
@@ -282,7 +282,7 @@ def test_a_second_writer_is_refused_naming_it(probe, workspace):
     ok(outcome)
 
 
-# -- disks ---------------------------------------------------------------------------------------
+# -- disks -------------------------------------------------------------------------------------
 def test_a_full_disk_leaves_nothing_and_says_so(probe, workspace, small_disk):
     big = small_disk / "filler"
     big.write_bytes(b"\0" * (1024 * 1024 - 96 * 1024))

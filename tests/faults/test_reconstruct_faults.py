@@ -26,7 +26,7 @@ def _reconstruct(
             "--quiet", *extra]  # fmt: skip
 
 
-# -- bad and degenerate raw images ---------------------------------------------------------------
+# -- bad and degenerate raw images -------------------------------------------------------------
 def _exr(how: str):
     def spoil(w: Path) -> None:
         header, channels = read_exr(w / "raw.exr")
@@ -123,7 +123,7 @@ def test_a_bad_or_degenerate_raw_is_refused(probe, workspace, name):
     ok(outcome)
 
 
-# -- bad calibrations and options ------------------------------------------------------------------
+# -- bad calibrations and options --------------------------------------------------------------
 def _write(name: str, content: bytes):
     def spoil(w: Path) -> Path:
         (w / name).write_bytes(content)
@@ -188,7 +188,7 @@ def test_a_bad_calibration_or_option_is_refused(probe, workspace, name):
     ok(outcome)
 
 
-# -- outputs, reruns, interruption, a second writer ------------------------------------------------
+# -- outputs, reruns, interruption, a second writer --------------------------------------------
 BAD_OUTS = {
     "an existing file": (lambda w: (w / "X").write_text("precious"), "X", ["not a folder"]),
     "a folder of other files": (lambda w: (w / "X").mkdir() or (w / "X" / "n.txt").write_text(
@@ -275,7 +275,7 @@ def test_kill_9_leaves_the_previous_or_the_new_set(probe, workspace, point):
     assert leftovers(w) == []
 
 
-# -- evaluate, correct warp, export, sim render ------------------------------------------------------
+# -- evaluate, correct warp, export, sim render ------------------------------------------------
 def _other_cases(w: Path) -> dict:
     rig = w / "rig.yaml"
     return {

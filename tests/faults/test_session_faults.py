@@ -1,0 +1,303 @@
+"""``labkit rig check``, ``capture``, ``session import`` and ``session show`` under bad
+rigs, hostile names, interruption, a second writer and full or read-only disks."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tifffile
+from _faults import another_writer, leftovers, ok, read_only, run_killed, snapshot
+from _helpers import write_rig
+
+from labkit.session import Session
+
+# -- rig check: everything capture would refuse later ------------------------------------------
+BAD_RIGS = {
+    "an infinite exposure": ({"plan.exposures_s.unfiltered": [".inf"]}, ["exposures_s"]),
+    "an odd sensor width": ({"sim.sensor.width": 95}, ["width"]),
+    "a 2×2 sensor": ({"sim.sensor.width": 2, "sim.sensor.height": 2}, ["width"]),
+    "a negative seed": ({"sim.seed": -1}, ["seed"]),
+    "slot 0": ({"slider.positions": {0: {"name": "unfiltered"}}}, ["0"]),
+    "an unknown response": ({"camera.response": "Nikon 9999"}, ["Nikon 9999"]),
+    "a missing response file": ({"camera.response": "none.csv"}, ["none.csv"]),
+    "a response outside the rig folder": ({"camera.response": "../../x.csv"}, ["x.csv"]),
+    "a scene named like a path": ({"plan.scenes": ["../up"]}, ["../up"]),
+    "NaN gain": ({"camera.gain_db": ".nan"}, ["gain_db"]),
+}
+
+
+@pytest.mark.parametrize("name", BAD_RIGS)
+def test_rig_check_refuses_what_capture_would(probe, workspace, sim_rig_path, name):
+    changes, mentions = BAD_RIGS[name]
+    folder = workspace / "badrig"
+    folder.mkdir()
+    rig = write_rig(folder, sim_rig_path, **changes)
+    text = rig.read_text().replace("'.inf'", ".inf").replace("'.nan'", ".nan")
+    rig.write_text(text)
+    ok(probe.case("rig check", "bad rig").run(["rig", "check", rig], mentions=mentions))
+    capture = ["capture", rig, "--session", workspace / "S2", "--fast", "--yes", "--no-progress"]
+    outcome = probe.run(capture, outputs=[workspace / "S2"], mentions=mentions)
+    ok(outcome)
+
+
+@pytest.mark.parametrize(
+    ("content", "name"),
+    [
+        (b"\x89PNG\r\n\x1a\n\xff", "binary"),
+        (b"", "empty"),
+        (b"- a\n- b\n", "a YAML list"),
+        (b"format: 1\ncamera: [", "truncated"),
+    ],
+)
+def test_rig_check_refuses_unreadable_rig_files(probe, workspace, content, name):
+    (workspace / "bad.yaml").write_bytes(content)
+    ok(probe.case("rig check", "bad rig file").run(["rig", "check", workspace / "bad.yaml"],
+                                                   mentions=["bad.yaml"]))  # fmt: skip
+
+
+# -- capture -----------------------------------------------------------------------------------
+def _capture(w: Path, session: str = "S2") -> list:
+    return ["capture", w / "rig.yaml", "--session", w / session, "--fast", "--yes", "--no-progress"]
+
+
+@pytest.mark.parametrize("n", [1, 7, 25])
+def test_capture_killed_after_n_frames_resumes_to_a_complete_session(probe, workspace, n):
+    w = workspace
+    killed = run_killed(_capture(w), at="labkit.session.store:Session._append", when="after", n=n)
+    probe.case("capture", "kill -9")
+    if killed.returncode != -9:
+        probe.judge_external("traceback", f"not killed: {killed.returncode} {killed.stderr}")
+    resumed = probe.run(_capture(w), outputs=[w / "S2"], expect="ok")
+    ok(resumed)
+    session = Session.open(w / "S2")
+    lines = (w / "S2" / "frames.jsonl").read_text().splitlines()
+    planned = len(Session.open(w / "S").records)  # the pipeline's complete capture
+    assert session.status == "complete" and len(session.records) == planned
+    assert len(lines) == planned, "each frame recorded once"
+    assert session.verify() == {}
+    assert leftovers(w / "S2") == []
+
+
+def test_capture_refuses_a_second_writer(probe, workspace):
+    with another_writer(workspace / "S"):
+        outcome = probe.case("capture", "two writers").run(
+            _capture(workspace, "S"), outputs=[workspace / "S"], mentions=["test-holder"]
+        )
+    ok(outcome)
+
+
+@pytest.mark.parametrize(
+    ("prepare", "name", "mentions"),
+    [
+        (lambda w: (w / "S2").write_text("a file"), "--session a file", ["S2"]),
+        (
+            lambda w: (w / "S2").mkdir() or (w / "S2" / "x.txt").write_text("x"),
+            "--session a folder of other files",
+            ["S2"],
+        ),
+        (lambda w: None, "--session the HDR folder", ["H"]),
+    ],
+)
+def test_capture_refuses_a_bad_session_folder(probe, workspace, prepare, name, mentions):
+    prepare(workspace)
+    session = "H" if "HDR" in name else "S2"
+    outcome = probe.case("capture", "bad --session").run(
+        _capture(workspace, session), outputs=[workspace / session], mentions=mentions
+    )
+    ok(outcome)
+
+
+def test_capture_on_a_full_disk_stops_clearly_and_resumes(probe, workspace, small_disk):
+    shutil.copy(workspace / "rig.yaml", small_disk / "rig.yaml")
+    (small_disk / "filler").write_bytes(b"\0" * (1024 * 1024 - 200 * 1024))
+    args = ["capture", small_disk / "rig.yaml", "--session", small_disk / "S", "--fast", "--yes",
+            "--no-progress"]  # fmt: skip
+    # a capture stops with the frames stored so far: a session to resume, by design
+    full = probe.case("capture", "full disk (tmpfs)").run(
+        args, extra_ok=[small_disk / "S"], mentions=["disk is full"]
+    )
+    ok(full)
+    (small_disk / "filler").unlink()
+    resumed = probe.run(args, outputs=[small_disk / "S"], expect="ok")
+    ok(resumed)
+    assert len(Session.open(small_disk / "S").records) == len(Session.open(workspace / "S").records)
+
+
+# -- session import ----------------------------------------------------------------------------
+PATTERN = "{scene}_{illumination}_{exposure}_{replicate}.tif"
+
+
+def _source(w: Path, names: dict[str, str] | None = None) -> Path:
+    """TIFFs named like another program's, copied from the session's lit frames."""
+    source = w / "src"
+    source.mkdir(exist_ok=True)
+    for record in Session.open(w / "S").records.values():
+        if record["dark"] or record["scene"] != "disks":
+            continue
+        ms = round(record["exposure_s"] * 1000)
+        name = f"{record['scene']}_{record['illumination']}_{ms}ms_{record['replicate']:04d}.tif"
+        shutil.copy(w / "S" / record["file"], source / (names or {}).get(name, name))
+    return source
+
+
+def _import(w: Path, source: Path, *extra: object, session: str = "I") -> list:
+    return ["session", "import", w / session, "--from", source, "--rig", w / "rig.yaml",
+            "--pattern", PATTERN, "--no-progress", *extra]  # fmt: skip
+
+
+def _hostile(name):
+    def make(w):
+        source = _source(w)
+        first = sorted(source.iterdir())[0]
+        first.rename(source / name)
+        return source
+
+    return make
+
+
+def _binary_tiff(w):
+    source = _source(w)
+    sorted(source.iterdir())[0].write_bytes(b"II*\x00" + b"\xff" * 64)
+    return source
+
+
+def _rgb_tiff(w):
+    source = _source(w)
+    path = sorted(source.iterdir())[0]
+    tifffile.imwrite(path, np.zeros((64, 96, 3), np.uint16))
+    return source
+
+
+def _mixed_sizes(w):
+    source = _source(w)
+    path = sorted(source.iterdir())[0]
+    tifffile.imwrite(path, np.zeros((32, 48), np.uint16))
+    return source
+
+
+IMPORT_CASES = {
+    "a scene escaping by name": (_hostile(".._unfiltered_3ms_0009.tif"), [], [".."]),
+    "an illumination escaping": (_hostile("disks_..%2f_3ms_0009.tif"), [], ["..%2f"]),
+    "nothing matches": (lambda w: _source(w), ["--pattern", "x_{scene}.png"], ["x_{scene}.png"]),
+    "a source that is missing": (lambda w: w / "nowhere", [], ["nowhere"]),
+    "a binary TIFF": (_binary_tiff, [], ["disks_"]),
+    "an RGB TIFF": (_rgb_tiff, [], ["disks_"]),
+    "frames of different sizes": (_mixed_sizes, [], ["disks_"]),
+    "--bits 0": (lambda w: _source(w), ["--bits", "0"], ["--bits"]),
+    "--saturation -1": (lambda w: _source(w), ["--saturation", "-1"], ["--saturation"]),
+    "--map to a missing slot": (lambda w: _source(w), ["--map", "red=9"], ["9"]),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("name", IMPORT_CASES)
+def test_session_import_refuses_bad_sources(probe, workspace, name):
+    make, extra, mentions = IMPORT_CASES[name]
+    source = make(workspace)
+    outcome = probe.case("session import", "bad source").run(
+        _import(workspace, source, *extra), outputs=[workspace / "I"], mentions=mentions
+    )
+    ok(outcome)
+    assert not list(workspace.parent.glob("*unfiltered*"))
+
+
+@pytest.mark.parametrize(
+    ("session", "mentions"),
+    [("S", ["S"]), ("H", ["H"]), ("raw.tiff", ["raw.tiff"])],
+)
+def test_session_import_refuses_a_folder_it_did_not_write(probe, workspace, session, mentions):
+    source = _source(workspace)
+    outcome = probe.case("session import", "bad session folder").run(
+        _import(workspace, source, session=session), outputs=[workspace / session],
+        mentions=mentions,
+    )  # fmt: skip
+    ok(outcome)
+
+
+@pytest.mark.parametrize("n", [1, 4])
+def test_session_import_killed_leaves_nothing_and_reruns(probe, workspace, n):
+    w = workspace
+    source = _source(w)
+    killed = run_killed(_import(w, source), at="labkit.session.store:Session._append", n=n)
+    probe.case("session import", "kill -9")
+    if killed.returncode != -9:
+        probe.judge_external("traceback", f"not killed: {killed.returncode} {killed.stderr}")
+    if (w / "I").exists():
+        probe.judge_external("mixed or partial result", "a killed import left a session")
+    ok(probe.run(_import(w, source), outputs=[w / "I"], expect="ok"))
+    assert Session.open(w / "I").verify() == {}
+    assert leftovers(w) == []
+
+
+def test_session_import_on_a_full_disk_leaves_nothing(probe, workspace, small_disk):
+    source = _source(workspace)
+    (small_disk / "filler").write_bytes(b"\0" * (1024 * 1024 - 120 * 1024))
+    outcome = probe.case("session import", "full disk (tmpfs)").run(
+        ["session", "import", small_disk / "I", "--from", source, "--rig",
+         workspace / "rig.yaml", "--pattern", PATTERN, "--no-progress"],
+        outputs=[small_disk / "I"], mentions=["disk is full"],
+    )  # fmt: skip
+    ok(outcome)
+    assert sorted(p.name for p in small_disk.iterdir()) == ["filler"]
+
+
+# -- session show: read-only, never writes -----------------------------------------------------
+def test_session_show_reads_a_read_only_session(probe, workspace):
+    manifest = workspace / "S" / "frames.jsonl"
+    manifest.write_bytes(manifest.read_bytes() + b'{"key": "torn')
+    with read_only(workspace / "S"):
+        outcome = probe.case("session show", "read-only input").run(
+            ["session", "show", workspace / "S", "--verify"], expect="ok"
+        )
+    ok(outcome)
+    assert manifest.read_bytes().endswith(b'{"key": "torn')
+
+
+def _escape(w):
+    lines = (w / "S" / "frames.jsonl").read_text().splitlines()
+    record = json.loads(lines[0])
+    record["file"] = "/etc/passwd"
+    lines[0] = json.dumps(record)
+    (w / "S" / "frames.jsonl").write_text("\n".join(lines) + "\n")
+
+
+def _scene_escape(w):
+    lines = (w / "S" / "frames.jsonl").read_text().splitlines()
+    record = json.loads(lines[-1])
+    record["scene"] = "../../x"
+    lines[-1] = json.dumps(record)
+    (w / "S" / "frames.jsonl").write_text("\n".join(lines) + "\n")
+
+
+SHOW_CASES = {
+    "a record pointing at /etc/passwd": (_escape, ["/etc/passwd"]),
+    "a binary session.yaml": (lambda w: (w / "S" / "session.yaml").write_bytes(b"\xff" * 30),
+                              ["session.yaml"]),
+    "session.yaml a YAML list": (lambda w: (w / "S" / "session.yaml").write_text("- 1\n"),
+                                 ["session.yaml"]),
+    "a record with a scene escaping": (_scene_escape, ["../../x"]),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("name", SHOW_CASES)
+def test_session_show_refuses_hostile_contents(probe, workspace, name):
+    spoil, mentions = SHOW_CASES[name]
+    spoil(workspace)
+    before = snapshot(workspace / "S")
+    outcome = probe.case("session show", "hostile session").run(
+        ["session", "show", workspace / "S", "--verify"], mentions=mentions
+    )
+    ok(outcome)
+    assert "root:" not in outcome.err + outcome.out
+    assert snapshot(workspace / "S") == before
+
+
+def test_bench_refuses_zero_repeats(probe, workspace):
+    outcome = probe.case("bench", "bad option").run(
+        ["bench", "sim", "--repeats", "0", "--out", workspace / "B"], outputs=[workspace / "B"],
+        mentions=["--repeats"],
+    )  # fmt: skip
+    ok(outcome)
