@@ -39,6 +39,7 @@ import functools
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import dask
 import dask.array as da
@@ -47,7 +48,7 @@ import numpy as np
 
 from calibration.dispersion_model import DispersionModel
 from labkit.blas_threads import fixed_blas_threads
-from labkit.errors import DataError
+from labkit.errors import ConfigError, DataError
 from reconstruction.image_formation import LatentSpace, build_formation
 from reconstruction.prior_terms import PriorTerm
 from reconstruction.problem import Problem
@@ -394,30 +395,50 @@ def reconstruct_patches(
 
 
 def probe_scheduler(address: str, *, timeout_s: float | None = None) -> None:
-    """Check that a ``tcp://host:port`` Dask scheduler answers, within `timeout_s`.
+    """Check that a ``tcp://`` or ``tls://host:port`` Dask scheduler answers, within
+    `timeout_s`.
 
     A scheduler greets every new connection at once (its handshake); something that
     accepts the connection and stays silent would make ``distributed.Client`` wait for
-    ever, so the greeting is awaited here with a deadline.
+    ever, so the greeting is awaited here with a deadline. Over ``tls://`` the TLS
+    handshake comes first, with the credentials of Dask's configuration
+    (:func:`scheduler_security`).
 
     Raises
     ------
     DataError
-        Nothing listens there, or it does not greet within the deadline
-        (:data:`SCHEDULER_TIMEOUT_S` by default).
+        Nothing listens there, it does not greet within the deadline
+        (:data:`SCHEDULER_TIMEOUT_S` by default), or the TLS handshake fails.
+    ConfigError
+        ``tls://`` without TLS credentials in Dask's configuration.
     """
     import socket
+    import ssl
 
     timeout_s = SCHEDULER_TIMEOUT_S if timeout_s is None else timeout_s
-    host, _, port = address.removeprefix("tcp://").rpartition(":")
+    scheme, _, rest = address.partition("://")
+    host, _, port = rest.rpartition(":")
+    context = None
+    if scheme == "tls":
+        context = scheduler_security().get_connection_args("client")["ssl_context"]
     try:
         with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s) as s:
             s.settimeout(timeout_s)
-            greeting = s.recv(1)
+            if context is not None:
+                with context.wrap_socket(s, server_hostname=host.strip("[]")) as secure:
+                    greeting = secure.recv(1)
+            else:
+                greeting = s.recv(1)
     except TimeoutError:
         raise DataError(
             f"Dask scheduler {address} did not answer within {timeout_s:g} s; check that a "
             "`dask scheduler` listens there, or use --scheduler threads"
+        ) from None
+    except ssl.SSLError as error:
+        raise DataError(
+            f"Dask scheduler {address}: the TLS handshake failed ({error.reason or error}); "
+            "check that Dask's TLS settings (distributed.comm.tls.*) hold this cluster's "
+            "CA and a client certificate it accepts"
         ) from None
     except (OSError, ValueError) as error:
         raise DataError(
@@ -431,6 +452,23 @@ def probe_scheduler(address: str, *, timeout_s: float | None = None) -> None:
         )
 
 
+def scheduler_security() -> Any:
+    """The ``distributed.Security`` for ``tls://`` schedulers, from Dask's configuration
+    (``distributed.comm.tls.ca-file``, ``.client.cert``, ``.client.key``, e.g. set by
+    ``DASK_DISTRIBUTED__COMM__TLS__CA_FILE``); :class:`ConfigError` when it is incomplete."""
+    from distributed import Security
+
+    security = Security()
+    if not (security.tls_ca_file and security.tls_client_cert):
+        raise ConfigError(
+            "a tls:// Dask scheduler needs TLS credentials in Dask's configuration: set "
+            "distributed.comm.tls.ca-file and distributed.comm.tls.client.cert (and .key) in "
+            "~/.config/dask/distributed.yaml, or DASK_DISTRIBUTED__COMM__TLS__CA_FILE, "
+            "DASK_DISTRIBUTED__COMM__TLS__CLIENT__CERT and DASK_DISTRIBUTED__COMM__TLS__CLIENT__KEY"
+        )
+    return security
+
+
 def _compute(
     result: da.Array,
     scheduler: str | object | None,
@@ -439,12 +477,13 @@ def _compute(
 ) -> np.ndarray:
     if scheduler is not None and not isinstance(scheduler, str):
         return scheduler.compute(result).result()  # a distributed.Client
-    if isinstance(scheduler, str) and scheduler.startswith("tcp://"):
+    if isinstance(scheduler, str) and scheduler.startswith(("tcp://", "tls://")):
         from distributed import Client
 
         probe_scheduler(scheduler)
+        security = scheduler_security() if scheduler.startswith("tls://") else None
         try:
-            client = Client(scheduler, timeout=SCHEDULER_TIMEOUT_S)
+            client = Client(scheduler, timeout=SCHEDULER_TIMEOUT_S, security=security)
         except (OSError, TimeoutError) as error:
             raise DataError(
                 f"Dask scheduler {scheduler} did not answer within {SCHEDULER_TIMEOUT_S:g} s "
@@ -455,8 +494,8 @@ def _compute(
     name = scheduler or "threads"
     if name not in ("threads", "processes", "sync", "synchronous", "single-threaded"):
         raise DataError(
-            f"unknown scheduler {scheduler!r}; use threads, processes, sync, tcp://host:port "
-            "or a dask.distributed.Client"
+            f"unknown scheduler {scheduler!r}; use threads, processes, sync, tcp://host:port, "
+            "tls://host:port or a dask.distributed.Client"
         )
     with dask.config.set(scheduler=name), contextlib.ExitStack() as stack:
         if progress:

@@ -216,10 +216,11 @@ def register(commands: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--scheduler",
         default="threads",
-        metavar="threads|processes|sync|tcp://HOST:PORT",
+        metavar="threads|processes|sync|tcp://HOST:PORT|tls://HOST:PORT",
         help="Dask scheduler for the patches: local threads (default), local processes, "
         "synchronous, or a dask.distributed scheduler's address (tcp:// is neither "
-        "authenticated nor encrypted: use it on a trusted network only)",
+        "authenticated nor encrypted: use it on a trusted network only; tls:// uses the "
+        "certificates of Dask's configuration, distributed.comm.tls.*)",
     )
     parser.add_argument(
         "--out",
@@ -265,7 +266,7 @@ def _run(args: argparse.Namespace, job: _Job) -> int:
             warnings.simplefilter("ignore", NarrowBandWarning)
             result = reconstruct(job.raw.raw, job.options, progress=bar.update)
     except OSError as error:
-        if not args.scheduler.startswith("tcp://"):
+        if not args.scheduler.startswith(("tcp://", "tls://")):
             raise
         raise DataError(_unreachable(args.scheduler, error)) from None
     finally:
@@ -380,11 +381,12 @@ def _prepare(args: argparse.Namespace) -> _Job:
 def _scheduler(value: str) -> str:
     if value in SCHEDULERS:
         return value
-    host, _, port = value.removeprefix("tcp://").rpartition(":")
-    if not value.startswith("tcp://") or not host or not port.isdigit():
+    scheme, _, rest = value.partition("://")
+    host, _, port = rest.rpartition(":")
+    if scheme not in ("tcp", "tls") or not host or not port.isdigit():
         raise ConfigError(
-            f"--scheduler is {value!r}; use {', '.join(SCHEDULERS)} or tcp://HOST:PORT "
-            "(a dask.distributed scheduler)"
+            f"--scheduler is {value!r}; use {', '.join(SCHEDULERS)}, tcp://HOST:PORT or "
+            "tls://HOST:PORT (a dask.distributed scheduler)"
         )
     from reconstruction.patches import probe_scheduler
 

@@ -526,3 +526,70 @@ def test_binary_or_malformed_side_files_are_clear_errors(
     err = capsys.readouterr().err
     assert status == 2 and message in err and str(side) in err and err.count("\n") == 1
     assert not out.exists()
+
+
+def _openssl(*args: str, cwd: Path) -> None:
+    import shutil
+    import subprocess
+
+    if shutil.which("openssl") is None:
+        pytest.skip("openssl is needed to make test certificates")
+    subprocess.run(["openssl", *args], cwd=cwd, check=True, capture_output=True)
+
+
+def _certificates(folder: Path, name: str) -> dict[str, str]:
+    """A CA and a certificate it signed (for scheduler, workers and client alike)."""
+    folder.mkdir()
+    _openssl("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", "ca.key", "-out",
+             "ca.pem", "-days", "2", "-subj", f"/CN={name}-ca", cwd=folder)  # fmt: skip
+    _openssl("req", "-newkey", "rsa:2048", "-nodes", "-keyout", "key.pem", "-out", "req.csr",
+             "-subj", f"/CN={name}", cwd=folder)  # fmt: skip
+    _openssl("x509", "-req", "-in", "req.csr", "-CA", "ca.pem", "-CAkey", "ca.key",
+             "-CAcreateserial", "-out", "cert.pem", "-days", "2", cwd=folder)  # fmt: skip
+    return {k: str(folder / f) for k, f in [("ca", "ca.pem"), ("cert", "cert.pem"),
+                                            ("key", "key.pem")]}  # fmt: skip
+
+
+def _tls_config(files: dict[str, str]) -> dict[str, str]:
+    return {
+        "distributed.comm.tls.ca-file": files["ca"],
+        "distributed.comm.tls.client.cert": files["cert"],
+        "distributed.comm.tls.client.key": files["key"],
+    }
+
+
+def test_tls_scheduler_uses_dasks_tls_configuration(inputs, tmp_path: Path, capsys) -> None:
+    """--scheduler tls://… authenticates with the certificates of Dask's configuration; a
+    client without them, or with another CA's, is refused before any work."""
+    import dask
+    from distributed import LocalCluster, Security
+
+    cluster_files = _certificates(tmp_path / "cluster", "labkit-test")
+    stranger = _certificates(tmp_path / "stranger", "stranger")
+    security = Security(
+        tls_ca_file=cluster_files["ca"], require_encryption=True,
+        **{f"tls_{role}_{kind}": cluster_files[kind] for role in ("scheduler", "worker", "client")
+           for kind in ("cert", "key")},
+    )  # fmt: skip
+    args = ["reconstruct", str(inputs["smooth"]), "--response", str(inputs["response"]),
+            "--bands", BANDS, "--weights", "fixed:0.001", "--no-nonneg",
+            "--patch-px", "32"]  # fmt: skip
+    with LocalCluster(
+        n_workers=1, threads_per_worker=2, processes=False, protocol="tls://", host="127.0.0.1",
+        dashboard_address=None, security=security,
+    ) as cluster:  # fmt: skip
+        address = cluster.scheduler_address
+        assert address.startswith("tls://")
+        with dask.config.set({"distributed.comm.tls.ca-file": None,
+                              "distributed.comm.tls.client.cert": None}):  # fmt: skip
+            assert main([*args, "--scheduler", address, "--out", str(tmp_path / "none")]) == 2
+        assert "needs TLS credentials" in capsys.readouterr().err
+        with dask.config.set(_tls_config(stranger)):
+            assert main([*args, "--scheduler", address, "--out", str(tmp_path / "bad")]) == 2
+        err = capsys.readouterr().err
+        assert "TLS handshake failed" in err and err.count("\n") == 1
+        with dask.config.set(_tls_config(cluster_files)):
+            assert main([*args, "--scheduler", address, "--out", str(tmp_path / "tls")]) == 0
+    assert not (tmp_path / "none").exists() and not (tmp_path / "bad").exists()
+    log = json.loads((tmp_path / "tls" / "log.json").read_text())
+    assert log["options"]["scheduler"] == address and log["patches"]["count"] == 6
