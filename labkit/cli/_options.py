@@ -32,3 +32,17 @@ def positive_int(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"{value} is not ≥ 1")
     return value
+
+
+def fraction(text: str) -> float:
+    """An argparse type: a number in (0, 1] (a fraction, not a percentage)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not 0 < value <= 1:
+        raise argparse.ArgumentTypeError(
+            f"{text} is not a fraction in (0, 1]"
+            + (f" (for {value:g} % give {value / 100:g})" if 1 < value <= 100 else "")
+        )
+    return value

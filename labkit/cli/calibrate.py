@@ -15,6 +15,8 @@ import argparse
 import math
 from pathlib import Path
 
+from labkit.cli._options import fraction
+
 
 def register(commands: argparse._SubParsersAction) -> None:
     """Add ``labkit calibrate …``."""
@@ -134,7 +136,7 @@ def _register_dispersion(actions: argparse._SubParsersAction) -> None:
     )
     parser.add_argument(
         "--min-purity",
-        type=float,
+        type=fraction,
         default=None,
         help="leave out bands with less in-band signal than this fraction (default 0.8); "
         "the fraction is measured from the images (their brightness against the leakage the "

@@ -240,3 +240,14 @@ def test_kill_9_leaves_the_previous_or_the_new_set(probe, workspace, command, at
             probe.judge_external("mixed or partial result", f"unchanged beside new: {same}")
     ok(probe.run(args, outputs=[out, *companions(out)], expect="ok"))
     assert leftovers(folder.parent) == []
+
+
+@pytest.mark.parametrize(("value", "hint"), [("2", "fraction"), ("80", "give 0.8"),
+                                             ("nan", "fraction"), ("x", "not a number")])  # fmt: skip
+def test_min_purity_out_of_range_says_what_it_is(probe, workspace, value, hint):
+    args, out = _args(workspace, "calibrate dispersion")
+    outcome = probe.case("calibrate dispersion", "bad option").run(
+        [*args, "--min-purity", value], outputs=[out, *companions(out)],
+        mentions=["--min-purity", hint],
+    )  # fmt: skip
+    ok(outcome)
