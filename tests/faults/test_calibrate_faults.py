@@ -242,8 +242,10 @@ def test_kill_9_leaves_the_previous_or_the_new_set(probe, workspace, command, at
     assert leftovers(folder.parent) == []
 
 
-@pytest.mark.parametrize(("value", "hint"), [("2", "fraction"), ("80", "give 0.8"),
-                                             ("nan", "fraction"), ("x", "not a number")])  # fmt: skip
+@pytest.mark.parametrize(
+    ("value", "hint"),
+    [("2", "fraction"), ("80", "give 0.8"), ("nan", "fraction"), ("x", "not a number")],
+)
 def test_min_purity_out_of_range_says_what_it_is(probe, workspace, value, hint):
     args, out = _args(workspace, "calibrate dispersion")
     outcome = probe.case("calibrate dispersion", "bad option").run(
