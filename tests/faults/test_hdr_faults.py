@@ -62,34 +62,21 @@ def _binary_manifest(w):
     (w / "S" / "frames.jsonl").write_bytes(b"\xff\xfe\x00\x01" * 64)
 
 
-def _key_missing(w):
-    records = _records(w)
-    del records[3]["exposure_s"]
-    _write_records(w, records)
+_DELETE = object()
 
 
-def _key_mistyped(w):
-    records = _records(w)
-    records[3]["exposure_s"] = "fast"
-    _write_records(w, records)
+def _edit_record(key: str, value: object, index: int = 3):
+    """A spoiler setting (or, with ``_DELETE``, removing) one key of one manifest record."""
 
+    def spoil(w: Path) -> None:
+        records = _records(w)
+        if value is _DELETE:
+            del records[index][key]
+        else:
+            records[index][key] = value
+        _write_records(w, records)
 
-def _negative_exposure(w):
-    records = _records(w)
-    records[3]["exposure_s"] = -0.1
-    _write_records(w, records)
-
-
-def _file_escapes(w):
-    records = _records(w)
-    records[3]["file"] = "../../outside/x.tiff"
-    _write_records(w, records)
-
-
-def _file_absolute(w):
-    records = _records(w)
-    records[3]["file"] = "/etc/passwd"
-    _write_records(w, records)
+    return spoil
 
 
 def _scene_escapes(w):
@@ -97,12 +84,6 @@ def _scene_escapes(w):
     for r in records:
         if r["scene"] == "disks":
             r["scene"] = "../../../escaped"
-    _write_records(w, records)
-
-
-def _illumination_escapes(w):
-    records = _records(w)
-    records[3]["illumination"] = "/tmp/x"
     _write_records(w, records)
 
 
@@ -155,13 +136,16 @@ BAD_SESSIONS = {
     "binary session.yaml": (_binary_yaml, ["session.yaml"]),
     "truncated session.yaml": (_truncated_yaml, ["session.yaml"]),
     "binary frames.jsonl": (_binary_manifest, ["frames.jsonl"]),
-    "record without a key": (_key_missing, ["exposure_s"]),
-    "record with a text exposure": (_key_mistyped, ["exposure_s"]),
-    "record with a negative exposure": (_negative_exposure, ["exposure"]),
-    "record file outside frames/": (_file_escapes, ["../../outside/x.tiff"]),
-    "record file absolute": (_file_absolute, ["/etc/passwd"]),
+    "record without a key": (_edit_record("exposure_s", _DELETE), ["exposure_s"]),
+    "record with a text exposure": (_edit_record("exposure_s", "fast"), ["exposure_s"]),
+    "record with a negative exposure": (_edit_record("exposure_s", -0.1), ["exposure"]),
+    "record file outside frames/": (
+        _edit_record("file", "../../outside/x.tiff"),
+        ["../../outside/x.tiff"],
+    ),
+    "record file absolute": (_edit_record("file", "/etc/passwd"), ["/etc/passwd"]),
     "scene escaping": (_scene_escapes, ["escaped"]),
-    "illumination absolute": (_illumination_escapes, ["/tmp/x"]),
+    "illumination absolute": (_edit_record("illumination", "/tmp/x"), ["/tmp/x"]),
     "bit-flipped frame": (_bit_flip, ["sha256"]),
     "frame of another exposure": (_swapped_exposure, ["sha256"]),
     "frame deleted": (_frame_deleted, ["r00"]),
