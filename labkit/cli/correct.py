@@ -69,7 +69,7 @@ def _warp(args: argparse.Namespace) -> int:
         verify_output_file,
     )
 
-    check_output_files([args.out, args.out.with_suffix(".png")])
+    check_output_files([args.out, args.out.with_suffix(".png")], inputs=[args.image, args.model])
     if args.image.is_file():
         verify_output_file(args.image, what="image")
     model = load_dispersion_model(args.model)

@@ -42,7 +42,7 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from labkit.errors import ConfigError, DataError
+    from labkit.errors import DataError
     from labkit.io import read_envi, read_spectral_exr, write_envi, write_spectral_exr
     from labkit.io.output_folder import check_output_files, writer_lock
 
@@ -57,13 +57,7 @@ def _export(args: argparse.Namespace) -> int:
     if out.suffix.lower() != suffix:
         raise DataError(f"--out {out}: {args.to.upper()} files end in {suffix}")
     outputs = [out, out.with_suffix(".img")] if args.to == "envi" else [out]
-    check_output_files(outputs)
-    for path in outputs:
-        if path.exists() and path.resolve() == source.resolve():
-            raise ConfigError(
-                f"--out {out}: this export would write {path} over its own input {source}; "
-                "give --out another name"
-            )
+    check_output_files(outputs, inputs=[source])
     with writer_lock(out, command="labkit export"):
         image = read_envi(source) if reading_envi else read_spectral_exr(source)
         if args.to == "envi":

@@ -262,11 +262,14 @@ def staged_output_folder(
     _fsync(out.parent)
 
 
-def check_output_files(files: Sequence[str | Path], *, option: str = "--out") -> list[Path]:
+def check_output_files(
+    files: Sequence[str | Path], *, option: str = "--out", inputs: Sequence[str | Path] = ()
+) -> list[Path]:
     """Raise unless `files` (a run's output files) can be written; nothing is created.
 
-    Each must not be a folder, the places must be writable, and no two may be the same file
-    (e.g. ``--out model.png`` whose plot would be ``model.png`` too).
+    Each must not be a folder, the places must be writable, no two may be the same file
+    (e.g. ``--out model.png`` whose plot would be ``model.png`` too), and none may be one of
+    the run's `inputs` (``export x.img`` would write its data file ``x.img``).
 
     Raises
     ------
@@ -274,8 +277,14 @@ def check_output_files(files: Sequence[str | Path], *, option: str = "--out") ->
         Naming the file and the fix.
     """
     paths = [Path(f) for f in files]
+    read = {os.path.realpath(f): Path(f) for f in inputs}
     seen: dict[str, Path] = {}
     for path in paths:
+        if os.path.realpath(path) in read:
+            raise ConfigError(
+                f"{option} {paths[0]}: this run would write {path} over its own input "
+                f"{read[os.path.realpath(path)]}; give {option} another name"
+            )
         if path.is_dir():
             raise ConfigError(f"{option} {paths[0]}: {path} is a folder; give a file name")
         real = os.path.realpath(path)

@@ -292,14 +292,15 @@ def _other_cases(w: Path) -> dict:
         ("correct warp", "--out over its input"): (["correct", "warp", w / "raw.exr", "--model",
                                                     w / "M" / "model.yaml", "--out",
                                                     w / "raw.exr"], [w / "raw.exr"],
-                                                   ["raw.exr"]),
+                                                   ["raw.exr", "its own input"]),
         ("correct warp", "--out inside the HDR folder"): (
             ["correct", "warp", w / "raw.exr", "--model", w / "M" / "model.yaml", "--out",
              w / "H" / "c.exr"], [w / "H"], ["lies inside"]),
         ("export", "binary EXR"): (["export", w / "bad.exr", "--to", "envi", "--out",
                                     w / "e.hdr"], [w / "e.hdr", w / "e.img"], ["bad.exr"]),
         ("export", "--out over its input"): (["export", w / "bad.img", "--to", "envi"],
-                                             [w / "bad.img", w / "bad.hdr"], ["bad.img"]),
+                                             [w / "bad.img", w / "bad.hdr"],
+                                             ["bad.img", "its own input"]),
         ("export", "wrong suffix"): (["export", w / "Y" / "disks-multispectral.exr", "--to",
                                       "envi", "--out", w / "e.txt"], [w / "e.txt"], ["e.txt"]),
         ("export", "--out inside a run folder"): (
