@@ -137,6 +137,8 @@ NOISE_BLOCK_PX = 16
 
 SCHEDULER_TIMEOUT_S = 20.0
 """How long a ``tcp://`` Dask scheduler may take to connect and answer the handshake, s."""
+REMOTE_SCHEMES = ("tcp://", "tls://")
+"""How the address of a ``dask.distributed`` scheduler starts."""
 #: p95 of |a − b| for independent N(0, σ²) samples, in σ (1.96 √2), with 15 % allowance
 #: for :func:`noise_sigma`'s low-percentile estimate (≈ 0.91 σ on pure noise).
 _NOISE_P95 = 1.96 * np.sqrt(2.0) * 1.15
@@ -416,16 +418,15 @@ def probe_scheduler(address: str, *, timeout_s: float | None = None) -> None:
     import ssl
 
     timeout_s = SCHEDULER_TIMEOUT_S if timeout_s is None else timeout_s
-    scheme, _, rest = address.partition("://")
-    host, _, port = rest.rpartition(":")
+    scheme, host, port = scheduler_address(address)
     context = None
     if scheme == "tls":
         context = scheduler_security().get_connection_args("client")["ssl_context"]
     try:
-        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s) as s:
+        with socket.create_connection((host, port), timeout=timeout_s) as s:
             s.settimeout(timeout_s)
             if context is not None:
-                with context.wrap_socket(s, server_hostname=host.strip("[]")) as secure:
+                with context.wrap_socket(s, server_hostname=host) as secure:
                     greeting = secure.recv(1)
             else:
                 greeting = s.recv(1)
@@ -440,7 +441,7 @@ def probe_scheduler(address: str, *, timeout_s: float | None = None) -> None:
             "check that Dask's TLS settings (distributed.comm.tls.*) hold this cluster's "
             "CA and a client certificate it accepts"
         ) from None
-    except (OSError, ValueError) as error:
+    except OSError as error:
         raise DataError(
             f"cannot reach the Dask scheduler {address} ({error}); start one "
             "(`dask scheduler`) or use --scheduler threads"
@@ -450,6 +451,19 @@ def probe_scheduler(address: str, *, timeout_s: float | None = None) -> None:
             f"Dask scheduler {address} closed the connection without a greeting; is it a "
             "`dask scheduler`?"
         )
+
+
+def scheduler_address(address: str) -> tuple[str, str, int]:
+    """``tcp://HOST:PORT`` or ``tls://HOST:PORT`` → (scheme, host, port); an IPv6 host may
+    be bracketed. :class:`ConfigError` for anything else."""
+    scheme, _, rest = address.partition("://")
+    host, _, port = rest.rpartition(":")
+    host = host.strip("[]")
+    if f"{scheme}://" not in REMOTE_SCHEMES or not host or not port.isdigit():
+        raise ConfigError(
+            f"{address!r} is not a Dask scheduler address: give tcp://HOST:PORT or tls://HOST:PORT"
+        )
+    return scheme, host, int(port)
 
 
 def scheduler_security() -> Any:
@@ -477,7 +491,7 @@ def _compute(
 ) -> np.ndarray:
     if scheduler is not None and not isinstance(scheduler, str):
         return scheduler.compute(result).result()  # a distributed.Client
-    if isinstance(scheduler, str) and scheduler.startswith(("tcp://", "tls://")):
+    if isinstance(scheduler, str) and scheduler.startswith(REMOTE_SCHEMES):
         from distributed import Client
 
         probe_scheduler(scheduler)

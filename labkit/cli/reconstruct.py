@@ -266,7 +266,9 @@ def _run(args: argparse.Namespace, job: _Job) -> int:
             warnings.simplefilter("ignore", NarrowBandWarning)
             result = reconstruct(job.raw.raw, job.options, progress=bar.update)
     except OSError as error:
-        if not args.scheduler.startswith(("tcp://", "tls://")):
+        from reconstruction.patches import REMOTE_SCHEMES
+
+        if not args.scheduler.startswith(REMOTE_SCHEMES):
             raise
         raise DataError(_unreachable(args.scheduler, error)) from None
     finally:
@@ -379,17 +381,17 @@ def _prepare(args: argparse.Namespace) -> _Job:
 
 
 def _scheduler(value: str) -> str:
+    from reconstruction.patches import probe_scheduler, scheduler_address
+
     if value in SCHEDULERS:
         return value
-    scheme, _, rest = value.partition("://")
-    host, _, port = rest.rpartition(":")
-    if scheme not in ("tcp", "tls") or not host or not port.isdigit():
+    try:
+        scheduler_address(value)
+    except ConfigError:
         raise ConfigError(
             f"--scheduler is {value!r}; use {', '.join(SCHEDULERS)}, tcp://HOST:PORT or "
             "tls://HOST:PORT (a dask.distributed scheduler)"
-        )
-    from reconstruction.patches import probe_scheduler
-
+        ) from None
     probe_scheduler(value)
     return value
 
