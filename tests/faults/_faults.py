@@ -23,7 +23,6 @@ import shutil
 import subprocess
 import sys
 import textwrap
-import time
 from collections import Counter
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
@@ -221,6 +220,13 @@ class Probe:
         )
         return outcome
 
+    def killed(self, args: Sequence[object], *, at: str, when: str = "after", n: int = 1) -> None:
+        """Run ``labkit *args`` killed with SIGKILL at a chosen point (:func:`run_killed`);
+        a run the kill did not reach fails the case."""
+        result = run_killed(args, at=at, when=when, n=n)
+        if result.returncode != -9:
+            self.judge_external("traceback", f"not killed: {result.returncode} {result.stderr}")
+
     def judge_external(self, verdict: str, why: str = "") -> None:
         """Record a verdict reached outside :meth:`run` (subprocess cases)."""
         self.request.node.user_properties.append(("fault", (self.command, self.kind, verdict)))
@@ -362,13 +368,6 @@ def read_only(folder: Path) -> Iterator[None]:
         yield
     finally:
         subprocess.run(["umount", "-l", str(folder)], check=False)
-
-
-def wait_for(predicate, timeout: float = 30.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        assert time.monotonic() < deadline, "timed out"
-        time.sleep(0.01)
 
 
 # -- the verdict table -------------------------------------------------------------------------

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from _faults import another_writer, leftovers, ok, read_only, run_killed, snapshot
+from _faults import another_writer, leftovers, ok, read_only, snapshot
 
 from labkit.io.exr import read_exr, write_exr
 from labkit.io.output_folder import RUN_MANIFEST
@@ -228,10 +228,7 @@ def test_kill_9_leaves_the_previous_or_the_new_set(probe, workspace, command, at
     args, _ = _args(w, command, out=str(out.relative_to(w)))
     if command == "calibrate dispersion":
         args = [*args[:-2], "--model", "spline", *args[-2:]]  # another model
-    killed = run_killed(args, at=at, when=when, n=n)
-    probe.case(command, "kill -9")
-    if killed.returncode != -9:
-        probe.judge_external("traceback", f"not killed: {killed.returncode} {killed.stderr}")
+    probe.case(command, "kill -9").killed(args, at=at, when=when, n=n)
     now = {k: v for k, v in snapshot(folder).items() if not k.startswith(".")}
     old = {k: v for k, v in previous.items() if not k.startswith(".")}
     if now != old:

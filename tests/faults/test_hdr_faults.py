@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import tifffile
-from _faults import another_writer, leftovers, ok, read_only, run_killed, snapshot
+from _faults import another_writer, leftovers, ok, read_only, snapshot
 
 HDR = "hdr"
 
@@ -239,10 +239,7 @@ def test_kill_9_leaves_the_previous_or_the_new_set(probe, workspace, point):
     at, when, n = KILL_POINTS[point]
     w = workspace
     previous = snapshot(w / "H")
-    killed = run_killed(_hdr(w, "--method", "thesis", out="H"), at=at, when=when, n=n)
-    probe.case(HDR, "kill -9")
-    if killed.returncode != -9:
-        probe.judge_external("traceback", f"not killed: {killed.returncode} {killed.stderr}")
+    probe.case(HDR, "kill -9").killed(_hdr(w, "--method", "thesis", out="H"), at=at, when=when, n=n)
     now = snapshot(w / "H")
     new = "method: thesis" in (w / "H" / "hdr.yaml").read_text()
     if not new and now != previous:

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import tifffile
-from _faults import another_writer, leftovers, ok, read_only, run_killed, snapshot
+from _faults import another_writer, leftovers, ok, read_only, snapshot
 
 from labkit.io.exr import read_exr, read_raw_exr, write_exr, write_raw_exr
 
@@ -264,10 +264,7 @@ def test_kill_9_leaves_the_previous_or_the_new_set(probe, workspace, point):
     w = workspace
     previous = snapshot(w / "R")
     spectral = _reconstruct(w, "--bands", "450,525,600", out="R", latent="spectral")
-    killed = run_killed(spectral, at=at, when=when, n=n)
-    probe.case(RECONSTRUCT, "kill -9")
-    if killed.returncode != -9:
-        probe.judge_external("traceback", f"not killed: {killed.returncode} {killed.stderr}")
+    probe.case(RECONSTRUCT, "kill -9").killed(spectral, at=at, when=when, n=n)
     now = snapshot(w / "R")
     if now != previous and "spectral.exr" not in now:
         probe.judge_external("mixed or partial result", "R changed but is not the new set")

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import tifffile
-from _faults import another_writer, leftovers, ok, read_only, run_killed, snapshot
+from _faults import another_writer, leftovers, ok, read_only, snapshot
 from _helpers import write_rig
 
 from labkit.session import Session
@@ -67,10 +67,9 @@ def _capture(w: Path, session: str = "S2") -> list:
 @pytest.mark.parametrize("n", [1, 7, 25])
 def test_capture_killed_after_n_frames_resumes_to_a_complete_session(probe, workspace, n):
     w = workspace
-    killed = run_killed(_capture(w), at="labkit.session.store:Session._append", when="after", n=n)
-    probe.case("capture", "kill -9")
-    if killed.returncode != -9:
-        probe.judge_external("traceback", f"not killed: {killed.returncode} {killed.stderr}")
+    probe.case("capture", "kill -9").killed(
+        _capture(w), at="labkit.session.store:Session._append", when="after", n=n
+    )
     resumed = probe.run(_capture(w), outputs=[w / "S2"], expect="ok")
     ok(resumed)
     session = Session.open(w / "S2")
@@ -221,10 +220,9 @@ def test_session_import_refuses_a_folder_it_did_not_write(probe, workspace, sess
 def test_session_import_killed_leaves_nothing_and_reruns(probe, workspace, n):
     w = workspace
     source = _source(w)
-    killed = run_killed(_import(w, source), at="labkit.session.store:Session._append", n=n)
-    probe.case("session import", "kill -9")
-    if killed.returncode != -9:
-        probe.judge_external("traceback", f"not killed: {killed.returncode} {killed.stderr}")
+    probe.case("session import", "kill -9").killed(
+        _import(w, source), at="labkit.session.store:Session._append", n=n
+    )
     if (w / "I").exists():
         probe.judge_external("mixed or partial result", "a killed import left a session")
     ok(probe.run(_import(w, source), outputs=[w / "I"], expect="ok"))
