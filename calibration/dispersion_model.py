@@ -29,7 +29,7 @@ from typing import Any, Literal, Protocol
 import numpy as np
 import yaml
 
-from calibration._model_files import float_array
+from calibration._model_files import float_array, read_model_document
 from calibration.polynomial_field import PolynomialField
 from calibration.spline_field import SplineField
 from labkit.errors import ConfigError, DataError
@@ -362,19 +362,10 @@ def load_dispersion_model(path: str | Path) -> DispersionModel:
     ConfigError
         The file is missing, is not YAML, or any key is invalid (the message names it).
     """
-    path = Path(path)
-    if not path.is_file():
-        raise ConfigError(
-            f"dispersion model {path} does not exist; create one with "
-            "`labkit calibrate dispersion HDR_DIR --out MODEL.yaml`"
-        )
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path} is not valid YAML: {exc}") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(
-            f"dispersion model {path} cannot be read as YAML text ({exc}); give the model "
-            "file `labkit calibrate dispersion` wrote"
-        ) from None
+    data = read_model_document(
+        path,
+        what="dispersion model",
+        missing_fix="create one with `labkit calibrate dispersion HDR_DIR --out MODEL.yaml`",
+        writer="labkit calibrate dispersion",
+    )
     return DispersionModel.from_dict(data, source=str(path))

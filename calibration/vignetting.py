@@ -36,7 +36,7 @@ import numpy as np
 import yaml
 
 from calibration import _polybasis as pb
-from calibration._model_files import float_array
+from calibration._model_files import float_array, read_model_document
 from labkit.blas_threads import fixed_blas_threads
 from labkit.cfa import CHANNELS, channel_index, check_layout
 from labkit.errors import ConfigError, DataError
@@ -228,20 +228,12 @@ class VignettingModel:
     @classmethod
     def load(cls, path: str | Path) -> VignettingModel:
         """Read :meth:`save`'s file; ConfigError naming the file and key of any problem."""
-        path = Path(path)
-        if not path.is_file():
-            raise ConfigError(
-                f"vignetting model {path} does not exist; fit one with calibration.vignetting"
-            )
-        try:
-            data = yaml.safe_load(path.read_text(encoding="utf-8"))
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"{path} is not valid YAML: {exc}") from None
-        except (OSError, UnicodeDecodeError) as exc:
-            raise ConfigError(
-                f"vignetting model {path} cannot be read as YAML text ({exc}); give the "
-                "model file `labkit calibrate vignetting` wrote"
-            ) from None
+        data = read_model_document(
+            path,
+            what="vignetting model",
+            missing_fix="fit one with `labkit calibrate vignetting`",
+            writer="labkit calibrate vignetting",
+        )
         return cls.from_dict(data, source=str(path))
 
     @classmethod

@@ -31,6 +31,7 @@ import shutil
 import socket
 import tempfile
 import threading
+import time
 import uuid
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -337,35 +338,153 @@ def staged_output_files(
     """
     paths = check_output_files(files, option=option)
     primary = paths[0]
-    with _staging(primary, command=command, option=option) as staging:
+    with _staging(primary, command=command, option=option, files=paths) as staging:
         staged = [staging / f"{i}{path.suffix}" for i, path in enumerate(paths)]
         yield staged
         if not staged[0].is_file():
             raise RuntimeError(f"the run wrote no {primary}")
         for path in paths:
             path.parent.mkdir(parents=True, exist_ok=True)
-        for temp, path in reversed(list(zip(staged, paths, strict=True))):
-            if temp.exists():
-                _move_into_place(temp, path)
-            else:
-                path.unlink(missing_ok=True)  # an earlier run's companion
-        for folder in {path.parent for path in paths}:
-            _fsync(folder)
+        pairs = list(reversed(list(zip(staged, paths, strict=True))))
+        _write_journal(staging, pairs, command=command)
+        _roll_forward(staging)
+
+
+# -- a file set's journal: the renames that put it in place, finished by whoever comes next --
+_JOURNAL = "put-in-place.json"
+
+
+def _write_journal(staging: Path, pairs: Sequence[tuple[Path, Path]], *, command: str) -> None:
+    """Record the renames that put a staged file set in place (companions first, the result
+    last), atomically: once the journal exists the new set is committed, and a run killed
+    between its renames is finished by the next writer (:func:`_roll_forward`) and refused
+    by readers meanwhile (:func:`check_file_set`)."""
+    journal = {
+        "command": command,
+        "pid": os.getpid(),
+        "written": _now(),
+        "renames": [
+            {"staged": temp.name if temp.exists() else None, "target": os.path.abspath(path)}
+            for temp, path in pairs
+        ],
+    }
+    part = staging / f"{_JOURNAL}.part"
+    with open(part, "w", encoding="utf-8") as handle:
+        json.dump(journal, handle)
+        handle.flush()
+        os.fsync(handle.fileno())
+    os.replace(part, staging / _JOURNAL)
+    _fsync(staging)
+
+
+def _read_journal(staging: Path) -> dict[str, Any] | None:
+    """A staging folder's journal; None when the run was not committed (no journal, or one
+    cut short: the run was killed before its set was complete)."""
+    try:
+        journal = json.loads((staging / _JOURNAL).read_text(encoding="utf-8"))
+        renames = [
+            (None if r["staged"] is None else staging / r["staged"], Path(r["target"]))
+            for r in journal["renames"]
+        ]
+    except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError):
+        return None
+    if any(temp is not None and temp.parent != staging for temp, _ in renames):
+        return None  # not a journal labkit wrote: a staged name that leaves its folder
+    return {**journal, "renames": renames}
+
+
+def _unfinished(journal: dict[str, Any]) -> bool:
+    """Whether some rename of a journal is still to be done."""
+    return any(
+        path.exists() if temp is None else temp.exists() for temp, path in journal["renames"]
+    )
+
+
+def _roll_forward(staging: Path) -> None:
+    """Do the renames a staging folder's journal lists (those not done yet); a file a run
+    did not write removes an earlier run's file of that name."""
+    journal = _read_journal(staging)
+    if journal is None:
+        return
+    for temp, path in journal["renames"]:
+        if temp is None:
+            path.unlink(missing_ok=True)  # an earlier run's companion this run did not write
+        elif temp.exists():
+            _move_into_place(temp, path)
+    for folder in {path.parent for _, path in journal["renames"]}:
+        _fsync(folder)
+    (staging / _JOURNAL).unlink()
+
+
+def check_file_set(path: str | Path, *, what: str = "input", wait: float = 5.0) -> None:
+    """Refuse a file whose set a killed run left half put in place.
+
+    A run that writes a file with companions (a dispersion model and its plots) puts them
+    in place one rename after another, the file itself last. A run killed between those
+    renames leaves its journal in a hidden staging folder beside the file: the companions
+    are new, the file is the previous one. The next run writing the file finishes the
+    renames; until then the set is mixed, and this raises. A live run still renaming is
+    waited for, up to `wait` seconds.
+
+    Raises
+    ------
+    DataError
+        Naming the run and the fix.
+    """
+    path = Path(path)
+    deadline = time.monotonic() + wait
+    while True:
+        pending = [
+            (staging, journal)
+            for staging in path.parent.glob(f".{path.name}{_STAGING}*")
+            if (journal := _read_journal(staging)) is not None and _unfinished(journal)
+        ]
+        if not pending:
+            return
+        if not _held_by_another(path) or time.monotonic() > deadline:
+            break
+        time.sleep(0.05)
+    staging, journal = pending[0]
+    raise DataError(
+        f"{what} {path}: a `{journal['command']}` run (pid {journal['pid']}) was stopped "
+        f"while putting its files in place ({staging.name} remains), so {path.name} is the "
+        "previous run's and its companions the new run's; run that command again to finish "
+        "or replace the set"
+    )
+
+
+def _held_by_another(target: Path) -> bool:
+    """Whether a live process holds `target`'s writer lock."""
+    try:
+        fd = os.open(lock_file_of(target), os.O_RDONLY)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError:
+        return True
+    finally:
+        os.close(fd)
+    return False
 
 
 @contextlib.contextmanager
-def _staging(target: Path, *, command: str, option: str) -> Iterator[Path]:
+def _staging(
+    target: Path, *, command: str, option: str, files: Sequence[Path] = ()
+) -> Iterator[Path]:
     """A hidden staging folder beside `target`, under its writer lock; removed on every exit
-    (after a swap it holds the previous content). Disk errors become DataErrors."""
+    (after a swap it holds the previous content). Disk errors become DataErrors. `files`
+    are a file set's outputs (see :func:`_remove_stale_staging`)."""
     with writer_lock(target, command=command, option=option):
         target.parent.mkdir(parents=True, exist_ok=True)
-        _remove_stale_staging(target)
+        _remove_stale_staging(target, files)
         staging = Path(tempfile.mkdtemp(prefix=f".{target.name}{_STAGING}", dir=target.parent))
         try:
             with _disk_errors(target, option):
                 yield staging
         finally:
-            shutil.rmtree(staging, ignore_errors=True)
+            if _read_journal(staging) is None:  # else a committed set for the next writer
+                shutil.rmtree(staging, ignore_errors=True)
 
 
 def _move_into_place(temp: Path, path: Path) -> None:
@@ -411,9 +530,16 @@ def _exchange(a: Path, b: Path) -> bool:
     raise OSError(code, os.strerror(code), str(b))
 
 
-def _remove_stale_staging(out: Path) -> None:
-    """Staging folders of killed runs into `out` (we hold its lock, so none is live)."""
-    for stale in out.parent.glob(f".{out.name}{_STAGING}*"):
+def _remove_stale_staging(out: Path, files: Sequence[Path] = ()) -> None:
+    """Staging folders of killed runs into `out` (we hold its lock, so none is live). A run
+    killed after committing its file set is finished first (:func:`_roll_forward`), so
+    that the previous set, if this run fails, is that run's complete set; only a journal
+    whose renames all target this run's own output `files` is followed."""
+    mine = {os.path.abspath(f) for f in files}
+    for stale in sorted(out.parent.glob(f".{out.name}{_STAGING}*")):
+        journal = _read_journal(stale)
+        if journal and {os.path.abspath(p) for _, p in journal["renames"]} <= mine:
+            _roll_forward(stale)
         shutil.rmtree(stale, ignore_errors=True)
 
 
@@ -563,6 +689,7 @@ def verify_output_file(path: str | Path, *, what: str = "input", levels: int = 3
         The file is not from that run (a mixed set) or was changed after it.
     """
     path = Path(path)
+    check_file_set(path, what=what)
     folder = path.parent
     for _ in range(levels):
         manifest = read_run_manifest(folder)

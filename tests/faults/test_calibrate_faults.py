@@ -250,3 +250,27 @@ def test_min_purity_out_of_range_says_what_it_is(probe, workspace, value, hint):
         mentions=["--min-purity", hint],
     )  # fmt: skip
     ok(outcome)
+
+
+def test_kill_9_between_renames_is_refused_by_readers_and_finished_by_the_rerun(probe, workspace):
+    """A dispersion model's set is put in place one rename at a time (plots first, the model
+    last); a kill between them leaves the new plots beside the previous model. Readers of the
+    model refuse it, naming the run; the next calibration finishes that set first."""
+    w, out = workspace, workspace / "M" / "model.yaml"
+    args, _ = _args(w, "calibrate dispersion", out="M/model.yaml")
+    args = [*args[:-2], "--model", "spline", *args[-2:]]
+    previous_model = out.read_bytes()
+    probe.case("calibrate dispersion", "kill -9").killed(
+        args, at="labkit.io.output_folder:_move_into_place", when="after", n=1
+    )
+    assert out.read_bytes() == previous_model  # the model is renamed last
+    reader = ["dispersion", "eval", out, "--x", "10", "--y", "10", "--wavelength", "600"]
+    outcome = probe.case("dispersion eval", "half-renamed set").run(
+        reader, mentions=[str(out), "labkit calibrate dispersion", "run that command again"]
+    )
+    ok(outcome)
+    ok(probe.case("calibrate dispersion", "kill -9").run(
+        args, outputs=[out, *companions(out)], expect="ok"
+    ))  # fmt: skip
+    assert out.read_bytes() != previous_model
+    assert leftovers(w / "M") == []

@@ -311,3 +311,74 @@ def test_nothing_is_written_inside_a_run_folder_or_a_session(tmp_path, owner):
         check_output_files([folder / "sub" / "model.yaml"])
     with pytest.raises(ConfigError, match="lies inside"):
         check_output_folder(folder / "sub" / "out")
+
+
+def _interrupt_after_renames(monkeypatch, renames: int) -> None:
+    """Make a file set's put-in-place stop (as a kill would) after `renames` renames."""
+    from labkit.io import output_folder
+
+    original, done = output_folder._move_into_place, [0]
+
+    def move(temp: Path, path: Path) -> None:
+        if done[0] == renames:
+            raise KeyboardInterrupt
+        done[0] += 1
+        original(temp, path)
+
+    monkeypatch.setattr(output_folder, "_move_into_place", move)
+
+
+def test_a_set_stopped_between_renames_is_refused_then_finished_by_the_next_writer(
+    tmp_path, monkeypatch
+):
+    from labkit.io.output_folder import check_file_set
+
+    paths = [tmp_path / "model.yaml", tmp_path / "model.png", tmp_path / "model.csv"]
+    _write_files(paths, ["model 1", "plot 1", "table 1"])
+    _interrupt_after_renames(monkeypatch, 1)  # companions go first: the table is new
+    with pytest.raises(KeyboardInterrupt):
+        _write_files(paths, ["model 2", "plot 2", "table 2"])
+    monkeypatch.undo()
+    assert [p.read_text() for p in paths] == ["model 1", "plot 1", "table 2"]
+    with pytest.raises(DataError, match=r"model\.yaml.*`test` run .*stopped while putting"):
+        check_file_set(paths[0], what="dispersion model")
+    with pytest.raises(DataError, match="stopped while putting"):
+        verify_output_file(paths[0])
+    # the next writer finishes the committed set before its own work: if it fails, that
+    # complete set stays
+    with pytest.raises(RuntimeError), staged_output_files(paths, command="test"):
+        raise RuntimeError("the rerun fails")
+    assert [p.read_text() for p in paths] == ["model 2", "plot 2", "table 2"]
+    check_file_set(paths[0])
+    assert sorted(p.name for p in tmp_path.iterdir()) == [p.name for p in sorted(paths)]
+
+
+def test_a_stopped_set_whose_companion_was_dropped_is_finished_without_it(
+    tmp_path, monkeypatch
+):
+    paths = [tmp_path / "model.yaml", tmp_path / "model.png"]
+    _write_files(paths, ["model 1", "plot 1"])
+    _interrupt_after_renames(monkeypatch, 0)
+    with pytest.raises(KeyboardInterrupt):
+        _write_files(paths, ["model 2", None])  # --no-plots: the old plot goes
+    monkeypatch.undo()
+    _write_files(paths, ["model 3", "plot 3"])
+    assert [p.read_text() for p in paths] == ["model 3", "plot 3"]
+
+
+def test_a_journal_is_followed_only_to_the_runs_own_outputs(tmp_path, monkeypatch):
+    paths = [tmp_path / "model.yaml", tmp_path / "model.png"]
+    _write_files(paths, ["model 1", "plot 1"])
+    _interrupt_after_renames(monkeypatch, 0)
+    with pytest.raises(KeyboardInterrupt):
+        _write_files(paths, ["model 2", "plot 2"])
+    monkeypatch.undo()
+    (staging,) = tmp_path.glob(".model.yaml.staging-*")
+    journal = json.loads((staging / "put-in-place.json").read_text())
+    elsewhere = tmp_path / "elsewhere.txt"
+    elsewhere.write_text("keep")
+    journal["renames"][0]["target"] = str(elsewhere)
+    (staging / "put-in-place.json").write_text(json.dumps(journal))
+    _write_files(paths, ["model 3", "plot 3"])
+    assert elsewhere.read_text() == "keep"
+    assert [p.read_text() for p in paths] == ["model 3", "plot 3"]
