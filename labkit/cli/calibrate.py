@@ -164,14 +164,16 @@ def _sensitivity(args: argparse.Namespace) -> int:
     )
     from labkit.io.output_folder import check_output_folder, staged_output_folder
 
-    check_output_folder(args.out, command="labkit calibrate sensitivity")
+    check_output_folder(args.out, command="labkit calibrate sensitivity", inputs=[args.hdr])
     scenes = load_filtered_hdr(args.hdr, scenes=args.scene)
     images = [image for group in scenes.values() for image in group]
     rig = _images_rig(args.rig, images, default=True)
     measured = channel_sensitivity(images, saturation=args.saturation)
     nominal = nominal_channel_sensitivity(rig)
     names = [f"sensitivity.{suffix}" for suffix in ("csv", "yaml", "png")]
-    with staged_output_folder(args.out, command="labkit calibrate sensitivity") as stage:
+    with staged_output_folder(
+        args.out, command="labkit calibrate sensitivity", inputs=[args.hdr]
+    ) as stage:
         measured.to_csv(stage / names[0])
         measured.to_yaml(stage / names[1])
         plot_channel_sensitivity(measured, nominal, stage / names[2])

@@ -88,7 +88,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     )
     from reconstruction import baseline_images, evaluate
 
-    check_output_folder(args.out, command="labkit evaluate")
+    check_output_folder(args.out, command="labkit evaluate", inputs=[args.raw])
     if args.raw.is_file():
         verify_output_file(args.raw, what="raw image")
     raw = read_mosaic(args.raw, cfa=args.cfa)
@@ -125,7 +125,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     images.update(images_in)
     result = evaluate(raw.raw, images, cfa=raw.cfa, boxes=boxes, labels=labels,
                       truth_colour=truth, seconds=seconds)  # fmt: skip
-    with staged_output_folder(args.out, command="labkit evaluate") as stage:
+    with staged_output_folder(args.out, command="labkit evaluate", inputs=[args.raw]) as stage:
         header, rows = _write_evaluation(args, raw, images, result, stage)
     for row in rows:
         print("  ".join(f"{h}: {v}" for h, v in zip(header, row, strict=True)))

@@ -66,7 +66,7 @@ def _hdr(args: argparse.Namespace) -> int:
     from labkit.hdr import factor_table, plan_sessions, run_hdr
     from labkit.io.output_folder import check_output_folder
 
-    check_output_folder(args.out, command="labkit hdr")
+    check_output_folder(args.out, command="labkit hdr", inputs=args.session)
     plans = plan_sessions(
         args.session, scenes=args.scene, illuminations=args.illumination, no_dark=args.no_dark
     )

@@ -297,7 +297,7 @@ def _prepare(args: argparse.Namespace) -> _Job:
         balance = _positive_float(args.band_balance, "--band-balance", zero=True)
     patch_px = _even_int(args.patch_px, "--patch-px", 8)
     pad_px = None if args.pad_px is None else _even_int(args.pad_px, "--pad-px", 2)
-    _check_out(args.out)
+    _check_out(args.out, inputs=[args.raw, args.dispersion, args.rig])
     if args.rig is not None and args.response is not None:
         raise ConfigError(
             "give either --rig (camera response and CFA from the rig file) or --response "
@@ -458,11 +458,13 @@ def _check_weights(text: str) -> None:
         )
 
 
-def _check_out(out: Path) -> None:
-    """The output folder can be written (:func:`check_output_folder`); nothing is created."""
+def _check_out(out: Path, *, inputs: list[Path | None]) -> None:
+    """The output folder can be written (:func:`check_output_folder`) without removing one
+    of the run's `inputs`; nothing is created."""
     from labkit.io.output_folder import check_output_folder
 
-    check_output_folder(out, command="labkit reconstruct")
+    given = [path for path in inputs if path is not None]
+    check_output_folder(out, command="labkit reconstruct", inputs=given)
 
 
 def _response(source: str, where: str) -> Any:

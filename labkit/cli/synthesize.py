@@ -45,11 +45,12 @@ def _synthesize(args: argparse.Namespace) -> int:
     )
     from labkit.io.output_folder import check_output_folder, staged_output_folder
 
-    check_output_folder(args.out, command="labkit synthesize")
+    inputs = [args.hdr, args.sensitivity]
+    check_output_folder(args.out, command="labkit synthesize", inputs=inputs)
     sensitivity = ChannelSensitivity.from_file(args.sensitivity)
     scenes = load_filtered_hdr(args.hdr, scenes=args.scene)
     lines = []
-    with staged_output_folder(args.out, command="labkit synthesize") as stage:
+    with staged_output_folder(args.out, command="labkit synthesize", inputs=inputs) as stage:
         for scene, images in scenes.items():
             synthesis = synthesize_multispectral(images, sensitivity)
             paths = write_synthesis(synthesis, stage, scene)

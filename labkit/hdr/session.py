@@ -239,7 +239,8 @@ def run_hdr(
     out = Path(out_dir)
     run = HDRRun(out, method)
     details = {"sessions": [str(plan.session) for plan in plans], "method": method}
-    with staged_output_folder(out, command="labkit hdr", details=details) as stage:
+    sessions = [plan.session for plan in plans]
+    with staged_output_folder(out, command="labkit hdr", details=details, inputs=sessions) as stage:
         for plan in plans:
             _merge_plan(plan, stage, run, previews=previews, on_frame=on_frame, on_image=on_image)
         index = json.loads(json.dumps(_index(plans, run), default=json_default))  # plain types

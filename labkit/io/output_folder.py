@@ -54,14 +54,19 @@ _HELD_GUARD = threading.Lock()
 
 # -- checking ------------------------------------------------------------------------------
 def check_output_folder(
-    out: str | Path, *, option: str = "--out", command: str | None = None
+    out: str | Path,
+    *,
+    option: str = "--out",
+    command: str | None = None,
+    inputs: Sequence[str | Path] = (),
 ) -> Path:
     """Raise unless `out` can become a run's output folder; nothing is created.
 
     It can if it is absent (and its nearest existing parent is a writable folder), an empty
     folder, or a folder that a labkit run of the same `command` wrote (it holds a run
     manifest): the run replaces it as a whole. Another command's folder (e.g. the HDR
-    folder a calibration reads) is refused.
+    folder a calibration reads) is refused, and so is a folder holding one of the run's
+    `inputs`, which replacing it would remove.
 
     Raises
     ------
@@ -70,6 +75,12 @@ def check_output_folder(
         cannot be created.
     """
     out = Path(out)
+    for given in inputs:
+        if _inside(Path(given), out):
+            raise ConfigError(
+                f"{option} {out} holds this run's input {given}, which replacing the folder "
+                f"would remove; give {option} a new folder"
+            )
     if out.is_symlink():
         raise ConfigError(
             f"{option} {out} is a symbolic link; give the folder it points to "
@@ -218,7 +229,12 @@ def _holder(fd: int) -> str:
 # -- staging and putting in place ------------------------------------------------------------
 @contextlib.contextmanager
 def staged_output_folder(
-    out: str | Path, *, command: str, option: str = "--out", details: dict[str, Any] | None = None
+    out: str | Path,
+    *,
+    command: str,
+    option: str = "--out",
+    details: dict[str, Any] | None = None,
+    inputs: Sequence[str | Path] = (),
 ) -> Iterator[Path]:
     """Yield a hidden staging folder whose content replaces `out` as one set on success.
 
@@ -238,6 +254,8 @@ def staged_output_folder(
         How the user named `out`, for messages.
     details : dict, optional
         Further facts for the manifest (e.g. the input's path).
+    inputs : sequence of paths
+        The files and folders the run reads, which must not lie inside `out`.
 
     Raises
     ------
@@ -246,7 +264,7 @@ def staged_output_folder(
     DataError
         The disk is full or the folder cannot be written: nothing was changed.
     """
-    out = check_output_folder(out, option=option, command=command)
+    out = check_output_folder(out, option=option, command=command, inputs=inputs)
     started = _now()
     with _staging(out, command=command, option=option) as staging:
         yield staging
@@ -258,7 +276,7 @@ def staged_output_folder(
             os.fsync(handle.fileno())
         os.chmod(staging, 0o777 & ~process_umask())
         _fsync(staging)
-        check_output_folder(out, option=option, command=command)  # unchanged meanwhile?
+        check_output_folder(out, option=option, command=command, inputs=inputs)  # unchanged?
         _put_in_place(staging, out)
     _fsync(out.parent)
 

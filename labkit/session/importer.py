@@ -249,9 +249,13 @@ def import_session(
         black_level=black_level,
     )
     origin = [str(s.resolve()) for s in sources]
-    check_output_folder(folder, option="session folder", command="labkit session import")
+    check_output_folder(
+        folder, option="session folder", command="labkit session import", inputs=sources
+    )
     Session.check_creatable(folder)
-    with staged_output_folder(folder, command="labkit session import", option="session") as stage:
+    with staged_output_folder(
+        folder, command="labkit session import", option="session", inputs=sources
+    ) as stage:
         session = Session.create(
             stage,
             rig,

@@ -211,6 +211,16 @@ def test_a_bad_out_is_refused_and_kept(probe, workspace, name):
     ok(outcome)
 
 
+def test_an_out_holding_the_raw_is_refused_and_kept(probe, workspace):
+    (workspace / "Z").mkdir()
+    shutil.copy(workspace / "raw.exr", workspace / "Z" / "raw.exr")
+    outcome = probe.case(RECONSTRUCT, "bad --out").run(
+        _reconstruct(workspace, raw="Z/raw.exr", out="Z"),
+        outputs=[workspace / "Z"], mentions=["holds this run's input", "raw.exr"],
+    )  # fmt: skip
+    ok(outcome)
+
+
 def test_a_colour_rerun_replaces_a_spectral_set(probe, workspace):
     w = workspace
     first = probe.case(RECONSTRUCT, "rerun").run(

@@ -353,9 +353,7 @@ def test_a_set_stopped_between_renames_is_refused_then_finished_by_the_next_writ
     assert sorted(p.name for p in tmp_path.iterdir()) == [p.name for p in sorted(paths)]
 
 
-def test_a_stopped_set_whose_companion_was_dropped_is_finished_without_it(
-    tmp_path, monkeypatch
-):
+def test_a_stopped_set_whose_companion_was_dropped_is_finished_without_it(tmp_path, monkeypatch):
     paths = [tmp_path / "model.yaml", tmp_path / "model.png"]
     _write_files(paths, ["model 1", "plot 1"])
     _interrupt_after_renames(monkeypatch, 0)
@@ -382,3 +380,15 @@ def test_a_journal_is_followed_only_to_the_runs_own_outputs(tmp_path, monkeypatc
     _write_files(paths, ["model 3", "plot 3"])
     assert elsewhere.read_text() == "keep"
     assert [p.read_text() for p in paths] == ["model 3", "plot 3"]
+
+
+def test_a_folder_holding_the_runs_input_is_not_replaced(tmp_path):
+    out = tmp_path / "out"
+    _write_set(out, {"raw.exr": "input"})
+    with pytest.raises(ConfigError, match=r"holds this run's input .*raw\.exr"):
+        check_output_folder(out, command="labkit holder", inputs=[out / "raw.exr"])
+    with pytest.raises(ConfigError, match="holds this run's input"):
+        with staged_output_folder(out, command="labkit holder", inputs=[out]):
+            pass
+    assert _contents(out) == {"raw.exr": "input"}
+    check_output_folder(out, command="labkit holder", inputs=[tmp_path / "elsewhere.exr"])
