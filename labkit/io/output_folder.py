@@ -321,7 +321,7 @@ def check_output_files(
 def _check_not_inside_another_set(path: Path, option: str, levels: int = 4) -> None:
     """Refuse writing into a labkit run folder or a session (their manifests list what they
     hold, so a file added or replaced there would damage them, e.g. an input image)."""
-    for parent in list(Path(os.path.abspath(path)).parents)[:levels]:
+    for parent in _parents(path, levels):
         owner = None
         if (parent / RUN_MANIFEST).is_file():
             owner = "the output folder of a labkit run"
@@ -708,32 +708,33 @@ def verify_output_file(path: str | Path, *, what: str = "input", levels: int = 3
     """
     path = Path(path)
     check_file_set(path, what=what)
-    folder = path.parent
-    for _ in range(levels):
+    for folder in _parents(path, levels):
         manifest = read_run_manifest(folder)
-        if manifest is not None:
-            name = path.relative_to(folder).as_posix()
-            facts = manifest["files"].get(name)
-            run = f"`{manifest.get('command')}` run of {manifest.get('finished')}"
-            if facts is None:
-                raise DataError(
-                    f"{what} {path} is not one of the files the {run} wrote into {folder}: "
-                    "the folder mixes runs; use a file from a complete run folder"
-                )
-            if path.stat().st_size != facts.get("bytes") or file_sha256(path) != facts.get(
-                "sha256"
-            ):
-                raise DataError(
-                    f"{what} {path} has changed since the {run} wrote it "
-                    f"({folder / RUN_MANIFEST}); run that command again"
-                )
-            return
-        if folder.parent == folder:
-            return
-        folder = folder.parent
+        if manifest is None:
+            continue
+        name = Path(os.path.abspath(path)).relative_to(folder).as_posix()
+        facts = manifest["files"].get(name)
+        run = f"`{manifest.get('command')}` run of {manifest.get('finished')}"
+        if facts is None:
+            raise DataError(
+                f"{what} {path} is not one of the files the {run} wrote into {folder}: "
+                "the folder mixes runs; use a file from a complete run folder"
+            )
+        if path.stat().st_size != facts.get("bytes") or file_sha256(path) != facts.get("sha256"):
+            raise DataError(
+                f"{what} {path} has changed since the {run} wrote it "
+                f"({folder / RUN_MANIFEST}); run that command again"
+            )
+        return
 
 
 # -- helpers -------------------------------------------------------------------------------
+def _parents(path: Path, levels: int) -> list[Path]:
+    """The `levels` folders above `path`, nearest first (where a run or session holding it
+    would be)."""
+    return list(Path(os.path.abspath(path)).parents)[:levels]
+
+
 def _inside(path: Path, folder: Path) -> bool:
     return Path(os.path.realpath(path)).is_relative_to(os.path.realpath(folder))
 
