@@ -167,7 +167,7 @@ def _sensitivity(args: argparse.Namespace) -> int:
     check_output_folder(args.out, command="labkit calibrate sensitivity", inputs=[args.hdr])
     scenes = load_filtered_hdr(args.hdr, scenes=args.scene)
     images = [image for group in scenes.values() for image in group]
-    rig = _images_rig(args.rig, images, default=True)
+    rig = _images_rig(args.rig, images, default=True, response=True)
     measured = channel_sensitivity(images, saturation=args.saturation)
     nominal = nominal_channel_sensitivity(rig)
     names = [f"sensitivity.{suffix}" for suffix in ("csv", "yaml", "png")]
@@ -332,11 +332,18 @@ def _rig_bands(rig_path: Path | None, images) -> dict:
 
 
 def _images_rig(
-    rig_path: Path | None, images, *, default: bool = False, hint: str = "pass --rig RIG.yaml"
+    rig_path: Path | None,
+    images,
+    *,
+    default: bool = False,
+    response: bool = False,
+    hint: str = "pass --rig RIG.yaml",
 ):
     """The rig of --rig, else that of the session the HDR images were merged from.
 
-    With `default`, images that name no readable session get the simulated rig.
+    With `default`, images that name no readable session get the simulated rig. With
+    `response`, the caller reads the camera response: a response file that a session's rig
+    snapshot names is followed only inside the session's folder.
     """
     from labkit.errors import DataError
     from labkit.rig import default_rig_path, load_rig
@@ -347,12 +354,32 @@ def _images_rig(
     sessions = {image.labkit.get("session") for image in images} - {None}
     for session in sorted(sessions):
         try:
-            return Session.open(session).rig
+            rig = Session.open(session).rig
         except DataError:
             continue
+        if response:
+            _check_snapshot_response(rig, Path(session))
+        return rig
     if default:
         return load_rig(default_rig_path())
     raise DataError(
         "this needs the rig, but the HDR images name no readable session "
         f"({', '.join(sorted(sessions)) or 'none recorded'}); {hint}"
     )
+
+
+def _check_snapshot_response(rig, session: Path) -> None:
+    """Refuse a session's rig snapshot whose response file lies outside the session: a
+    session's contents are data, and a path in them is not followed out of its folder."""
+    from labkit.errors import DataError
+
+    value = rig.camera.response
+    if not value.lower().endswith((".csv", ".yaml", ".yml")):
+        return  # a dataset name
+    resolved = Path(rig.response_source()).resolve()
+    if not resolved.is_relative_to(session.resolve()):
+        raise DataError(
+            f"{rig.source}: rig.camera.response {value!r} lies outside the session {session}, "
+            "and a session's contents are not followed outside its folder; pass --rig "
+            "RIG.yaml, the rig file the session was captured with"
+        )

@@ -8,8 +8,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from _faults import another_writer, leftovers, ok, read_only, snapshot
 
+from labkit.cli import main
 from labkit.io.exr import read_exr, write_exr
 from labkit.io.output_folder import RUN_MANIFEST
 
@@ -274,3 +276,21 @@ def test_kill_9_between_renames_is_refused_by_readers_and_finished_by_the_rerun(
     ))  # fmt: skip
     assert out.read_bytes() != previous_model
     assert leftovers(w / "M") == []
+
+
+@pytest.mark.parametrize("where", ["absolute", "relative"])
+def test_a_session_response_file_outside_the_session_is_not_read(probe, workspace, where):
+    """The nominal ratios come from the camera response of the session's rig snapshot; a
+    response file it names outside the session is refused, not read."""
+    w = workspace
+    assert main(["hdr", str(w / "S"), "--out", str(w / "H3"), "--no-progress", "--quiet"]) == 0
+    outside = w / "outside.csv"
+    outside.write_text("wavelength_nm,R,G,B\n400,1,1,1\n700,1,1,1\n")
+    info = yaml.safe_load((w / "S" / "session.yaml").read_text())
+    info["rig"]["camera"]["response"] = str(outside) if where == "absolute" else "../outside.csv"
+    (w / "S" / "session.yaml").write_text(yaml.safe_dump(info, sort_keys=False))
+    outcome = probe.case("calibrate sensitivity", "hostile session").run(
+        ["calibrate", "sensitivity", w / "H3", "--out", w / "C3"], outputs=[w / "C3"],
+        mentions=["camera.response", "outside the session", "--rig"],
+    )  # fmt: skip
+    ok(outcome)
