@@ -38,25 +38,30 @@ def register(commands: argparse._SubParsersAction) -> None:
 def _bench(args: argparse.Namespace) -> int:
     from labkit.bench import BENCHMARKS, write_report
     from labkit.bench.harness import accepts
+    from labkit.io.output_folder import check_output_folder, staged_output_folder
     from labkit.rig import default_rig_path
 
     stages = list(BENCHMARKS) if args.stage == "all" else [args.stage]
     full = args.full if args.full is not None else (True if args.stage == "all" else None)
+    check_output_folder(args.out, command="labkit bench")
     results, notes = {}, {}
-    for stage in stages:
-        function = BENCHMARKS[stage]
-        extra = {"out": args.out} if accepts(function, "out") else {}
-        if accepts(function, "full"):
-            extra["full"] = full
-        cases, stage_notes = function(args.rig or default_rig_path(), repeats=args.repeats, **extra)
-        results[stage] = cases
-        notes[stage] = stage_notes
-        for case in cases:
-            verdict = "" if case.passed is None else (" pass" if case.passed else " FAIL")
-            target = "" if case.target_s is None else f" (target ≤ {case.target_s:g} s)"
-            print(f"{stage}: {case.name}: {case.seconds:.3f} s{target}{verdict}, "
-                  f"peak {case.peak_mib:.0f} MiB")  # fmt: skip
-    report = write_report(args.out, results, [], stage_notes=notes)
+    with staged_output_folder(args.out, command="labkit bench") as out:
+        for stage in stages:
+            function = BENCHMARKS[stage]
+            extra = {"out": out} if accepts(function, "out") else {}
+            if accepts(function, "full"):
+                extra["full"] = full
+            rig = args.rig or default_rig_path()
+            cases, stage_notes = function(rig, repeats=args.repeats, **extra)
+            results[stage] = cases
+            notes[stage] = stage_notes
+            for case in cases:
+                verdict = "" if case.passed is None else (" pass" if case.passed else " FAIL")
+                target = "" if case.target_s is None else f" (target ≤ {case.target_s:g} s)"
+                print(f"{stage}: {case.name}: {case.seconds:.3f} s{target}{verdict}, "
+                      f"peak {case.peak_mib:.0f} MiB")  # fmt: skip
+        write_report(out, results, [], stage_notes=notes)
+    report = args.out / "bench.md"
     print(f"wrote {report} and {report.with_suffix('.json')}")
     failed = [c.name for cases in results.values() for c in cases if c.passed is False]
     return 1 if failed else 0

@@ -54,19 +54,23 @@ def _demo(args: argparse.Namespace) -> int:
         raise ConfigError("--data and --pattern name real captures; add --real")
     if args.real and args.quick:
         raise ConfigError("--quick applies to the simulated demo; --real runs in under 2 minutes")
-    if args.real:
-        from labkit.demo_real import run_real_demo
+    from labkit.io.output_folder import output_folder_in_place
 
-        report = run_real_demo(
-            args.out,
-            data=args.data,
-            rig_path=args.rig,
-            patterns=args.pattern,
-            progress=False if args.no_progress else None,
-        )
-    else:
-        from labkit.demo import run_demo
+    command = "labkit demo --real" if args.real else "labkit demo"
+    with output_folder_in_place(args.out, command=command) as out:
+        if args.real:
+            from labkit.demo_real import run_real_demo
 
-        report = run_demo(args.out, rig_path=args.rig, quick=args.quick)
+            report = run_real_demo(
+                out,
+                data=args.data,
+                rig_path=args.rig,
+                patterns=args.pattern,
+                progress=False if args.no_progress else None,
+            )
+        else:
+            from labkit.demo import run_demo
+
+            report = run_demo(out, rig_path=args.rig, quick=args.quick)
     print(f"wrote {report} (and report.md, results.json)")
     return 0

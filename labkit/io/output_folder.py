@@ -47,6 +47,10 @@ RUN_MANIFEST = "labkit-run.json"
 
 MANIFEST_FORMAT = 1
 
+RUNNING = ".labkit-run.running"
+"""Marker of an output folder a run writes in place (:func:`output_folder_in_place`) and
+has not finished: the folder is incomplete until its run manifest replaces the marker."""
+
 _STAGING = ".staging-"
 _HELD: dict[str, tuple[int, int]] = {}  # lock file → (fd, depth): reentrant in a process
 _HELD_GUARD = threading.Lock()
@@ -93,14 +97,14 @@ def check_output_folder(
             entries = [p.name for p in out.iterdir()]
         except OSError as error:
             raise ConfigError(f"{option} {out} cannot be read ({error.strerror})") from None
-        if entries and RUN_MANIFEST not in entries:
+        if entries and RUN_MANIFEST not in entries and RUNNING not in entries:
             raise ConfigError(
                 f"{option} {out} holds files that no labkit run wrote (no {RUN_MANIFEST}); a "
                 "run replaces its output folder as a whole, so choose a new folder or remove "
                 "this one"
             )
         if entries and command is not None:
-            manifest = read_run_manifest(out) or {}
+            manifest = read_run_manifest(out) or _read_running(out)
             if _program(str(manifest.get("command"))) != _program(command):
                 raise ConfigError(
                     f"{option} {out} holds the outputs of `{manifest.get('command', 'another')}`"
@@ -279,6 +283,61 @@ def staged_output_folder(
         check_output_folder(out, option=option, command=command, inputs=inputs)  # unchanged?
         _put_in_place(staging, out)
     _fsync(out.parent)
+
+
+@contextlib.contextmanager
+def output_folder_in_place(
+    out: str | Path, *, command: str, option: str = "--out"
+) -> Iterator[Path]:
+    """Yield `out` itself, to be written in place, and make it one set on success.
+
+    For runs whose files name each other by absolute path (the demo: sessions, HDR images
+    and reports record where they are), which a staging folder renamed into place would
+    break. The previous content of `out` is moved aside; while the run writes, a hidden
+    marker (:data:`RUNNING`) says the folder is incomplete, and readers refuse it
+    (:func:`verify_output_folder`). On success the run manifest replaces the marker and the
+    previous content is removed; on failure the partial folder is removed and the previous
+    content put back. A killed run leaves its marked, incomplete folder, which the next run
+    into `out` replaces. The block runs under :func:`writer_lock`.
+
+    Raises
+    ------
+    ConfigError
+        `out` cannot be an output folder, or another run is writing it.
+    DataError
+        The disk is full or the folder cannot be written.
+    """
+    out = check_output_folder(out, option=option, command=command)
+    started = _now()
+    with _staging(out, command=command, option=option) as aside:
+        previous = aside / "previous"
+        if out.exists():
+            os.rename(out, previous)
+        out.mkdir()
+        marker = {"command": command, "pid": os.getpid(), "started": started}
+        (out / RUNNING).write_text(json.dumps(marker) + "\n", encoding="utf-8")
+        try:
+            yield out
+            manifest = _manifest(out, command=command, started=started, details=None)
+            text = json.dumps(manifest, indent=1, ensure_ascii=False) + "\n"
+            with atomic_path(out / RUN_MANIFEST) as part:
+                part.write_text(text, encoding="utf-8")
+            (out / RUNNING).unlink()
+        except BaseException:
+            shutil.rmtree(out, ignore_errors=True)
+            if previous.exists():
+                os.rename(previous, out)
+            raise
+    _fsync(out.parent)
+
+
+def _read_running(folder: Path) -> dict[str, Any]:
+    """The marker of a run writing `folder` in place (empty if none or unreadable)."""
+    try:
+        marker = json.loads((folder / RUNNING).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError):
+        return {}
+    return marker if isinstance(marker, dict) else {}
 
 
 def check_output_files(
@@ -588,7 +647,7 @@ def _manifest(
             "sha256": file_sha256(path),
         }
         for path in sorted(staging.rglob("*"))
-        if path.is_file()
+        if path.is_file() and not _hidden(path.relative_to(staging))
     }
     return {
         "format": MANIFEST_FORMAT,
@@ -660,6 +719,13 @@ def verify_output_folder(
         A listed file is missing or changed, or a file is not from that run (a mixed set).
     """
     folder = Path(folder)
+    if (folder / RUNNING).exists():
+        running = _read_running(folder)
+        raise DataError(
+            f"{what} {folder} is incomplete: a `{running.get('command', 'labkit')}` run "
+            f"started {running.get('started', '')} is writing it or was stopped; run {rerun} "
+            "again"
+        )
     manifest = read_run_manifest(folder)
     if manifest is None:
         return None
@@ -685,7 +751,7 @@ def verify_output_folder(
     for path in sorted(folder.rglob("*")):
         name = path.relative_to(folder).as_posix()
         if path.is_file() and name != RUN_MANIFEST and name not in files:
-            if any(part.startswith(".") for part in path.relative_to(folder).parts):
+            if _hidden(path.relative_to(folder)):
                 continue
             raise DataError(
                 f"{what} {folder} mixes files of different runs: {name} is not from the "
@@ -733,6 +799,11 @@ def _parents(path: Path, levels: int) -> list[Path]:
     """The `levels` folders above `path`, nearest first (where a run or session holding it
     would be)."""
     return list(Path(os.path.abspath(path)).parents)[:levels]
+
+
+def _hidden(relative: Path) -> bool:
+    """Hidden files (locks, markers, staging) are not part of a run's set."""
+    return any(part.startswith(".") for part in relative.parts)
 
 
 def _inside(path: Path, folder: Path) -> bool:

@@ -392,3 +392,65 @@ def test_a_folder_holding_the_runs_input_is_not_replaced(tmp_path):
             pass
     assert _contents(out) == {"raw.exr": "input"}
     check_output_folder(out, command="labkit holder", inputs=[tmp_path / "elsewhere.exr"])
+
+
+# -- a folder written in place (the demo) ------------------------------------------------------
+def _write_in_place(out: Path, files: dict[str, str], fail: bool = False) -> None:
+    from labkit.io.output_folder import output_folder_in_place
+
+    with output_folder_in_place(out, command="labkit demo") as folder:
+        assert folder == out  # written where it stays: recorded paths remain true
+        for name, text in files.items():
+            (folder / name).parent.mkdir(parents=True, exist_ok=True)
+            (folder / name).write_text(text)
+        _write_set(out / "hdr", {"a.exr": "nested run"}, command="labkit hdr")
+        if fail:
+            raise RuntimeError("the demo fails")
+
+
+def test_a_folder_written_in_place_becomes_one_set_and_a_failure_restores_the_previous(
+    tmp_path,
+):
+    out = tmp_path / "demo"
+    _write_in_place(out, {"report.md": "first"})
+    verify_output_folder(out, what="demo folder", rerun="labkit demo")
+    with pytest.raises(RuntimeError):
+        _write_in_place(out, {"report.md": "second"}, fail=True)
+    assert _contents(out) == {"report.md": "first", "hdr/a.exr": "nested run"}
+    verify_output_folder(out, what="demo folder", rerun="labkit demo")
+    assert _siblings(out) == []
+    _write_in_place(out, {"report.md": "third"})
+    assert _contents(out)["report.md"] == "third"
+
+
+_IN_PLACE_HOLDER = textwrap.dedent(
+    """
+    import sys, time
+    from pathlib import Path
+    from labkit.io.output_folder import output_folder_in_place
+    with output_folder_in_place(sys.argv[1], command="labkit demo") as out:
+        (Path(out) / "half.txt").write_text("partial")
+        print("writing", flush=True)
+        time.sleep(120)
+    """
+)
+
+
+def test_a_killed_in_place_run_is_refused_by_readers_and_replaced_by_the_next(tmp_path):
+    out = tmp_path / "demo"
+    _write_in_place(out, {"report.md": "first"})
+    holder = subprocess.Popen(
+        [sys.executable, "-c", _IN_PLACE_HOLDER, str(out)], stdout=subprocess.PIPE, text=True
+    )
+    assert holder.stdout is not None and holder.stdout.readline().strip() == "writing"
+    with pytest.raises(DataError, match=r"incomplete: a `labkit demo` run"):
+        verify_output_folder(out, what="demo folder", rerun="labkit demo")
+    os.kill(holder.pid, signal.SIGKILL)
+    holder.wait()
+    with pytest.raises(DataError, match="incomplete"):
+        verify_output_folder(out, what="demo folder", rerun="labkit demo")
+    with pytest.raises(ConfigError, match="`labkit demo`, not of `labkit hdr`"):
+        check_output_folder(out, command="labkit hdr")
+    _write_in_place(out, {"report.md": "rerun"})
+    assert _contents(out) == {"report.md": "rerun", "hdr/a.exr": "nested run"}
+    assert _siblings(out) == []
