@@ -56,3 +56,11 @@ def test_every_image_of_the_report_loads_in_chromium(demo_out: Path) -> None:
         assert images_in_chromium(page)["broken"] == [linked[0]]
     finally:
         missing.write_bytes(kept)
+
+
+def test_the_demo_folder_is_one_verified_set(demo_out: Path) -> None:
+    from labkit.io.output_folder import RUNNING, verify_output_folder
+
+    manifest = verify_output_folder(demo_out, what="demo folder", rerun="labkit demo")
+    assert manifest is not None and manifest["command"] == "labkit demo"
+    assert "report.html" in manifest["files"] and not (demo_out / RUNNING).exists()

@@ -299,3 +299,23 @@ def test_bench_refuses_zero_repeats(probe, workspace):
         mentions=["--repeats"],
     )  # fmt: skip
     ok(outcome)
+
+
+REPORT_OUTS = {
+    "a folder of other files": ("X", ["no labkit run wrote"]),
+    "the HDR folder": ("H", ["labkit hdr"]),
+    "inside the session": ("S/report", ["lies inside"]),
+}
+
+
+@pytest.mark.parametrize("name", REPORT_OUTS)
+@pytest.mark.parametrize("command", [["bench", "sim", "--repeats", "1"], ["demo", "--quick"]])
+def test_a_report_folder_is_checked_before_any_work(probe, workspace, command, name):
+    out, mentions = REPORT_OUTS[name]
+    (workspace / "X").mkdir()
+    (workspace / "X" / "notes.txt").write_text("precious")
+    top = workspace / out.split("/")[0]
+    outcome = probe.case(command[0], "bad --out").run(
+        [*command, "--out", workspace / out], outputs=[top], mentions=mentions
+    )
+    ok(outcome)
