@@ -97,6 +97,11 @@ def check_output_folder(
             entries = [p.name for p in out.iterdir()]
         except OSError as error:
             raise ConfigError(f"{option} {out} cannot be read ({error.strerror})") from None
+        if "session.yaml" in entries and RUN_MANIFEST not in entries:
+            raise ConfigError(
+                f"{option} {out} holds a session that `labkit capture` wrote; a run replaces "
+                "its output folder as a whole, so choose a new folder"
+            )
         if entries and RUN_MANIFEST not in entries and RUNNING not in entries:
             raise ConfigError(
                 f"{option} {out} holds files that no labkit run wrote (no {RUN_MANIFEST}); a "

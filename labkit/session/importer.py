@@ -249,10 +249,9 @@ def import_session(
         black_level=black_level,
     )
     origin = [str(s.resolve()) for s in sources]
-    check_output_folder(
+    check_output_folder(  # an earlier import is replaced as a whole; a capture is refused
         folder, option="session folder", command="labkit session import", inputs=sources
     )
-    Session.check_creatable(folder)
     with staged_output_folder(
         folder, command="labkit session import", option="session", inputs=sources
     ) as stage:

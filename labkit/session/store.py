@@ -115,6 +115,11 @@ class Session:
     def check_creatable(folder: str | Path) -> None:
         """Raise ConfigError unless a new session can be created in `folder`."""
         folder = Path(folder)
+        if (folder / SESSION_FILE).is_file():
+            raise ConfigError(
+                f"session folder {folder} already holds a labkit session; resume it with "
+                f"`labkit capture RIG --session {folder}`, or choose a new --session folder"
+            )
         if folder.exists() and (not folder.is_dir() or any(folder.iterdir())):
             raise ConfigError(
                 f"session folder {folder} is not empty and holds no labkit session; "

@@ -205,7 +205,7 @@ def test_session_import_refuses_bad_sources(probe, workspace, name):
 
 @pytest.mark.parametrize(
     ("session", "mentions"),
-    [("S", ["S"]), ("H", ["H"]), ("raw.tiff", ["raw.tiff"])],
+    [("S", ["S", "labkit capture"]), ("H", ["H", "labkit hdr"]), ("raw.tiff", ["raw.tiff"])],
 )
 def test_session_import_refuses_a_folder_it_did_not_write(probe, workspace, session, mentions):
     source = _source(workspace)
@@ -319,3 +319,13 @@ def test_a_report_folder_is_checked_before_any_work(probe, workspace, command, n
         [*command, "--out", workspace / out], outputs=[top], mentions=mentions
     )
     ok(outcome)
+
+
+def test_session_import_again_replaces_the_earlier_import(probe, workspace):
+    source = _source(workspace)
+    first = probe.case("session import", "rerun").run(
+        _import(workspace, source), outputs=[workspace / "I"], expect="ok"
+    )
+    ok(first)
+    ok(probe.run(_import(workspace, source), outputs=[workspace / "I"], expect="ok"))
+    assert Session.open(workspace / "I").verify() == {}
