@@ -24,6 +24,8 @@ def read_model_document(path: str | Path, *, what: str, missing_fix: str, writer
     `writer` is the command that writes such files, for messages.
     """
     path = Path(path)
+    if path.is_dir():
+        raise ConfigError(f"{what} {path} is a folder; give the model's YAML file")
     if not path.is_file():
         raise ConfigError(f"{what} {path} does not exist; {missing_fix}")
     check_file_set(path, what=what)

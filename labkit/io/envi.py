@@ -30,6 +30,10 @@ from labkit.io.spectral_image import SpectralImage, checked_cube, float32_bands
 DATA_SUFFIX = ".img"
 """Suffix of the raw data file written beside the ``.hdr`` header."""
 
+#: Wavelengths (nm) of which an ENVI image must reach at least one: the CIE observer's.
+VISIBLE_NM = (360.0, 830.0)
+#: Suffixes of an ENVI data file beside its header (Spectral Python looks for these).
+_DATA_SUFFIXES = (".img", ".dat", ".raw", ".sli", ".hyspex", ".IMG", ".DAT", ".RAW")
 _NM_PER_UNIT = {
     "nm": 1.0,
     "nanometers": 1.0,
@@ -126,8 +130,17 @@ def read_envi(path: str | Path) -> SpectralImage:
         wavelength units other than nm and µm.
     """
     header = Path(path)
+    if header.is_dir():
+        raise DataError(f"{header} is a folder; give an ENVI header file (.hdr)")
     if not header.is_file():
         raise DataError(f"ENVI header {header} does not exist")
+    if not any(header.with_suffix(s).is_file() for s in _DATA_SUFFIXES) and not (
+        header.suffix.lower() == ".hdr" and header.with_suffix("").is_file()
+    ):
+        raise DataError(
+            f"{header.with_suffix('.img')}, the data file of {header}, is missing; keep the "
+            "data file (.img, .dat or .raw) beside its header, under the same name"
+        )
     envi = _spectral_envi()
     try:
         opened = envi.open(str(header))
@@ -149,6 +162,14 @@ def read_envi(path: str | Path) -> SpectralImage:
             f"{header}: wavelength units {unit!r} are not understood; use Nanometers or Micrometers"
         )
     wavelengths = np.asarray([float(w) for w in metadata["wavelength"]]) * _NM_PER_UNIT[unit]
+    low, high = VISIBLE_NM
+    if wavelengths.size and (wavelengths.max() < low or wavelengths.min() > high):
+        raise DataError(
+            f"{header}: its wavelengths ({wavelengths.min():g}–{wavelengths.max():g} nm, read "
+            f"with 'wavelength units' = {unit}) miss the visible range {low:g}–{high:g} nm "
+            "that labkit works in; check the header's "
+            "'wavelength' list and 'wavelength units'"
+        )
     bands = 1 if values.ndim == 2 else values.shape[2]
     if wavelengths.size != bands:
         raise DataError(

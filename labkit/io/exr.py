@@ -220,8 +220,11 @@ def _open(path: str | Path, *, header_only: bool) -> Any:
     import OpenEXR
 
     path = Path(path)
+    if path.is_dir():
+        raise DataError(f"{path} is a folder; give an EXR file")
     if not path.is_file():
         raise DataError(f"EXR file {path} does not exist")
+    check_exr_file(path)
     try:
         return OpenEXR.File(str(path), separate_channels=True, header_only=header_only)
     except Exception as error:  # the binding raises bare RuntimeErrors on bad files
@@ -237,3 +240,96 @@ def read_provenance(path: str | Path, header: dict[str, Any]) -> dict[str, Any]:
     except (TypeError, json.JSONDecodeError):
         raise DataError(f"{path}: the 'labkit' header attribute is not valid JSON") from None
     return value if isinstance(value, dict) else {}
+
+
+# -- a file's first bytes: what it is, and whether it is whole ---------------------------------
+EXR_MAGIC = b"\x76\x2f\x31\x01"
+_MAGICS = {
+    b"II*\x00": "a TIFF file (.tif)",
+    b"MM\x00*": "a TIFF file (.tif)",
+    b"\x89PNG": "a PNG file (.png)",
+    b"\xff\xd8\xff": "a JPEG file (.jpg)",
+}
+_SINGLE_PART_SCANLINE = 0x200 | 0x800 | 0x1000  # version flags: tiled, deep, multi-part
+#: Scanlines per chunk by compression (OpenEXR's compression attribute).
+_LINES_PER_CHUNK = {0: 1, 1: 1, 2: 1, 3: 16, 4: 32, 5: 16, 6: 32, 7: 32, 8: 32, 9: 256}
+
+
+def check_exr_file(path: str | Path) -> None:
+    """Raise DataError naming what `path` is, unless it starts like a whole OpenEXR file.
+
+    Checks the magic number, and for single-part scanline files (what labkit writes) that
+    the chunk table points inside the file, so that a truncated file is called truncated
+    (the library would print its own errors and fail with a vaguer one).
+    """
+    path = Path(path)
+    try:
+        with open(path, "rb") as handle:
+            head = handle.read(1 << 16)
+        size = path.stat().st_size
+    except OSError as error:
+        raise DataError(f"{path} cannot be read ({error.strerror})") from None
+    if not head.startswith(EXR_MAGIC):
+        kind = next((k for magic, k in _MAGICS.items() if head.startswith(magic)), None)
+        what = f"it is {kind}: give it that suffix" if kind else "it does not start like one"
+        raise DataError(f"{path} is not an OpenEXR file ({what})")
+    try:
+        table = _chunk_table(head)
+    except EOFError:
+        if len(head) < size:
+            return  # a header longer than this check reads
+        raise DataError(f"{path} is truncated ({size} bytes: its header is cut short)") from None
+    if table is None:
+        return  # a layout this check does not read (tiled, deep, multi-part, huge header)
+    start, chunks = table
+    if start + 8 * chunks > size:
+        raise DataError(f"{path} is truncated ({size} bytes, its header promises more)")
+    with open(path, "rb") as handle:
+        handle.seek(start)
+        offsets = np.frombuffer(handle.read(8 * chunks), dtype="<u8")
+        last = int(offsets.max()) if offsets.size else 0
+        handle.seek(last)
+        leader = handle.read(8)  # the last chunk's first row and its size in bytes
+    end = last + 8 + int.from_bytes(leader[4:8], "little", signed=True) if len(leader) == 8 else -1
+    if offsets.size and (offsets.min() < start + 8 * chunks or not last < end <= size):
+        raise DataError(
+            f"{path} is truncated or damaged ({size} bytes, but its last chunk ends at byte "
+            f"{max(end, last)}); write or copy it again"
+        )
+
+
+def _chunk_table(head: bytes) -> tuple[int, int] | None:
+    """(offset, count) of a single-part scanline file's chunk table, from its header; None
+    for other layouts; EOFError where `head` ends inside the header."""
+    version = int.from_bytes(head[4:8], "little")
+    if version & _SINGLE_PART_SCANLINE:
+        return None
+    at, window, compression = 8, None, None
+    while True:
+        name_end = head.find(b"\0", at)
+        if name_end < 0:
+            raise EOFError
+        if name_end == at:  # an empty name ends the header
+            at += 1
+            break
+        type_end = head.find(b"\0", name_end + 1)
+        if type_end < 0 or type_end + 5 > len(head):
+            raise EOFError
+        length = int.from_bytes(head[type_end + 1 : type_end + 5], "little", signed=True)
+        value = head[type_end + 5 : type_end + 5 + length]
+        if length < 0:
+            return None
+        if len(value) < length:
+            raise EOFError
+        name = head[at:name_end]
+        if name == b"dataWindow" and length == 16:
+            window = np.frombuffer(value, dtype="<i4")
+        elif name == b"compression" and length == 1:
+            compression = value[0]
+        at = type_end + 5 + length
+    if window is None or compression not in _LINES_PER_CHUNK:
+        return None
+    rows = int(window[3]) - int(window[1]) + 1
+    if rows <= 0:
+        return None
+    return at, -(-rows // _LINES_PER_CHUNK[compression])

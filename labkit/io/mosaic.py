@@ -106,6 +106,8 @@ def read_mosaic(path: str | Path, *, cfa: str | None = None, cfa_from: str = "--
                 f"{cfa_from} is {cfa!r}; use one of {', '.join(CFA_LAYOUTS)} (the top-left 2×2 "
                 "block of the mosaic, row by row)"
             ) from None
+    if path.is_dir():
+        raise DataError(f"{path} is a folder; give a raw image file")
     suffix = path.suffix.lower()
     if suffix not in MOSAIC_SUFFIXES:
         raise DataError(

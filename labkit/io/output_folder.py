@@ -138,7 +138,11 @@ def _check_creatable(path: Path, message: str) -> None:
     existing = path.parent
     while not existing.exists() and existing.parent != existing:
         existing = existing.parent
-    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
+    if existing.exists() and not existing.is_dir():
+        raise ConfigError(
+            f"{message} {existing}, which is a file, not a folder; choose another place"
+        )
+    if not os.access(existing, os.W_OK | os.X_OK):
         raise ConfigError(f"{message} {existing}; choose a writable place")
 
 
@@ -369,7 +373,8 @@ def check_output_files(
                 f"{read[os.path.realpath(path)]}; give {option} another name"
             )
         if path.is_dir():
-            raise ConfigError(f"{option} {paths[0]}: {path} is a folder; give a file name")
+            named = f"{option} {path}" if path == paths[0] else f"{path}, an output of this run,"
+            raise ConfigError(f"{named} is a folder; give a file name")
         real = os.path.realpath(path)
         if real in seen:
             raise ConfigError(

@@ -95,3 +95,58 @@ def test_rgb_exr_is_labelled_rgb_whatever_provenance_it_carries(tmp_path: Path) 
     assert provenance["kind"] == "rgb" and provenance["cfa"] == "GBRG"
     assert provenance["format"] != "old"
     np.testing.assert_array_equal(read_rgb_exr(path), rgb)
+
+
+def _exr(path: Path) -> Path:
+    from labkit.io.exr import RawImage, write_raw_exr
+
+    raw = np.random.default_rng(1).random((40, 48)).astype(np.float32)
+    write_raw_exr(path, RawImage(raw, "GBRG", 0.01, "unfiltered", None))
+    return path
+
+
+def test_a_truncated_exr_is_called_truncated_without_library_noise(tmp_path, capfd):
+    from labkit.io.exr import read_exr, read_exr_header
+
+    data = _exr(tmp_path / "whole.exr").read_bytes()
+    read_exr(tmp_path / "whole.exr")
+    for cut in (len(data) - 10, len(data) // 2, 400):
+        (tmp_path / "cut.exr").write_bytes(data[:cut])
+        with pytest.raises(DataError, match=r"cut\.exr is truncated"):
+            read_exr(tmp_path / "cut.exr")
+        with pytest.raises(DataError, match=r"cut\.exr is truncated"):
+            read_exr_header(tmp_path / "cut.exr")
+    assert capfd.readouterr().err == ""  # OpenEXR printed nothing: it was never reached
+
+
+@pytest.mark.parametrize(
+    ("content", "match"),
+    [(b"II*\x00" + bytes(64), r"it is a TIFF file \(\.tif\)"),
+     (b"\x89PNG\r\n" + bytes(64), "it is a PNG file"),
+     (b"", "it does not start like one")],
+)  # fmt: skip
+def test_a_file_that_is_not_exr_says_what_it_is(tmp_path, content, match):
+    from labkit.io.exr import read_exr
+
+    (tmp_path / "x.exr").write_bytes(content)
+    with pytest.raises(DataError, match=rf"x\.exr is not an OpenEXR file \({match}"):
+        read_exr(tmp_path / "x.exr")
+
+
+def test_a_folder_where_a_file_goes_is_called_a_folder(tmp_path):
+    from calibration import load_dispersion_model
+    from labkit.errors import ConfigError
+    from labkit.io import read_mosaic
+    from labkit.io.envi import read_envi
+    from labkit.io.exr import read_exr
+
+    (tmp_path / "d.exr").mkdir()
+    (tmp_path / "d.hdr").mkdir()
+    with pytest.raises(DataError, match=r"d\.exr is a folder; give a raw image file"):
+        read_mosaic(tmp_path / "d.exr")
+    with pytest.raises(DataError, match=r"d\.exr is a folder; give an EXR file"):
+        read_exr(tmp_path / "d.exr")
+    with pytest.raises(DataError, match=r"d\.hdr is a folder"):
+        read_envi(tmp_path / "d.hdr")
+    with pytest.raises(ConfigError, match=r"dispersion model .*d\.exr is a folder"):
+        load_dispersion_model(tmp_path / "d.exr")

@@ -237,3 +237,34 @@ def test_envi_headers_that_contradict_their_data_are_refused(tmp_path: Path, edi
     header.write_text(edit(header.read_text()))
     with pytest.raises(DataError, match=match):
         read_envi(header)
+
+
+@pytest.mark.parametrize(
+    ("spoil", "match"),
+    [
+        (
+            lambda h: h.with_suffix(".img").unlink(),
+            r"cube\.img, the data file of .*cube\.hdr, is missing",
+        ),
+        (
+            lambda h: h.write_text(h.read_text().replace("Micrometers", "Nanometers")),
+            r"0\.45–0\.65 nm, read with 'wavelength units' = nanometers\) miss the visible",
+        ),
+        (
+            lambda h: h.write_text(
+                h.read_text().replace("0.45", "4.5").replace("0.55", "5.5").replace("0.65", "6.5")
+            ),
+            r"4500–6500 nm.*'wavelength units'",
+        ),
+    ],
+    ids=["data file missing", "units wrong", "wavelengths ×10"],
+)
+def test_envi_missing_data_or_unseen_wavelengths_are_named(tmp_path, spoil, match):
+    values = np.random.default_rng(3).random((4, 5, 3)).astype(np.float32)
+    header = tmp_path / "cube.hdr"
+    envi.save_image(str(header), values, dtype=np.float32,
+                    metadata={"wavelength": ["0.45", "0.55", "0.65"],
+                              "wavelength units": "Micrometers"})  # fmt: skip
+    spoil(header)
+    with pytest.raises(DataError, match=match):
+        read_envi(header)
