@@ -98,6 +98,12 @@ def _hdr_root(folder: str | Path) -> Path:
         raise DataError(
             f"HDR folder {root} does not exist; create it with `labkit hdr SESSION --out {root}`"
         )
+    if (root / "session.yaml").is_file():  # labkit.session.SESSION_FILE
+        merged = root.parent / f"{root.name or 'session'}-hdr"
+        raise DataError(
+            f"{root} is a capture session, not an HDR folder; merge it first: "
+            f"`labkit hdr {root} --out {merged}`, then give {merged}"
+        )
     verify_output_folder(root, what="HDR folder", rerun=f"`labkit hdr SESSION … --out {root}`")
     return root
 

@@ -342,14 +342,16 @@ def _check_model(model: DispersionModel, shape: tuple[int, int], variables: str)
     if model.variables != variables:
         if variables == "xy":
             raise DataError(
-                "this is a spectral (x, y, λ) dispersion model; warp spectral images with "
-                "correct_spectral, or calibrate a colour-channel model (`labkit calibrate "
-                "dispersion --reference G`) for colour images"
+                "this is a spectral (x, y, λ) dispersion model; warp spectral images with it "
+                "(correct_spectral; on the command line `labkit correct warp SPECTRAL.exr "
+                "--model MODEL.yaml`), or calibrate a colour-channel model (`labkit calibrate "
+                "dispersion HDR --reference G`) for colour images"
             )
         raise DataError(
             "this is a colour-channel dispersion model (R/B relative to G); warp colour "
-            "images with correct_channels, or calibrate a spectral model between filter "
-            "bands for spectral images"
+            "images with it (correct_channels; on the command line `labkit correct warp "
+            "RAW --model MODEL.yaml`), or calibrate a spectral model between filter bands "
+            "(`labkit calibrate dispersion HDR --reference 600`) for spectral images"
         )
     model_shape = tuple(int(v) for v in model.image_shape)
     if model_shape != tuple(shape):

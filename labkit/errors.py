@@ -22,3 +22,8 @@ class DeviceError(LabkitError):
 
 class DataError(LabkitError):
     """An image, spectrum or file on disk is missing, malformed or inconsistent."""
+
+
+class DataWarning(UserWarning):
+    """Data that labkit can use but the user should know about (e.g. a torn last record of
+    a session's manifest: that frame is left out). The CLI prints these as one line each."""

@@ -9,6 +9,9 @@ what is expected.
 
 from __future__ import annotations
 
+import difflib
+import types
+import typing
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -27,6 +30,7 @@ from labkit.cfa import layout_from_pixel_format
 from labkit.errors import ConfigError, DataError
 from labkit.frame import path_name_problem
 from labkit.spectra import MEASURED_FILTER_COLUMNS, BandpassFilter
+from labkit.spectra.illuminants import illuminant_problem
 
 RIG_FORMAT = 1
 PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
@@ -148,6 +152,14 @@ class LightConfig(_Strict):
 
     source: str = Field("projector", description="'projector', 'E' or a colour-science illuminant")
 
+    @field_validator("source")
+    @classmethod
+    def _known(cls, value: str) -> str:
+        hint = illuminant_problem(value)
+        if hint:
+            raise ValueError(f"'projector', 'E' or a colour-science illuminant; {hint}")
+        return value
+
 
 class ExposureConfig(_Strict):
     """Exposure times, s, for unfiltered and filtered illumination (or 'auto')."""
@@ -208,6 +220,17 @@ class SimSensorConfig(_Strict):
     black_level_dn: NonNegativeFloat = 32.0
     bloom_fraction: Annotated[float, Field(ge=0, le=1)] = 0.5
     exposure_jitter_s: NonNegativeFloat = 2e-5
+
+    @model_validator(mode="after")
+    def _black_below_saturation(self) -> SimSensorConfig:
+        top = 2**self.adc_bits - 1
+        if self.black_level_dn >= top:
+            raise ValueError(
+                f"black_level_dn {self.black_level_dn:g} is not below the {self.adc_bits}-bit "
+                f"ADC maximum {top} (2**adc_bits − 1), so every pixel would be saturated; "
+                f"lower black_level_dn (typically a few % of {top}) or raise adc_bits"
+            )
+        return self
 
 
 class SimLightConfig(_Strict):
@@ -386,13 +409,73 @@ def _union_root(location: tuple[Any, ...]) -> str:
     return _key_path(tuple(root))
 
 
+def _model_in(annotation: Any) -> type[BaseModel] | None:
+    """The pydantic model an annotation holds (through Annotated, Optional and unions)."""
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    origin = typing.get_origin(annotation)
+    if origin is Annotated:
+        return _model_in(typing.get_args(annotation)[0])
+    if origin in (typing.Union, types.UnionType):
+        for arg in typing.get_args(annotation):
+            model = _model_in(arg)
+            if model is not None:
+                return model
+    return None
+
+
+def _step(annotation: Any, part: Any) -> Any:
+    """The annotation one key below `annotation` (a model's field, a dict's or list's item)."""
+    model = _model_in(annotation)
+    if model is not None:
+        field = model.model_fields.get(str(part))
+        return None if field is None else field.annotation
+    options = [annotation]
+    while options:
+        option = options.pop(0)
+        origin = typing.get_origin(option)
+        if origin is dict:
+            return typing.get_args(option)[1]
+        if origin is list:
+            return typing.get_args(option)[0]
+        if origin in (Annotated, typing.Union, types.UnionType):
+            options.extend(typing.get_args(option)[:1] if origin is Annotated else
+                           typing.get_args(option))  # fmt: skip
+    return None
+
+
+def _known_keys(location: tuple[Any, ...]) -> list[str]:
+    """The keys the schema allows at `location` (a key path of a mapping), or []."""
+    node: Any = Rig
+    for part in location:
+        if "[" in str(part):
+            continue  # a union-branch tag, not a key
+        node = _step(node, part)
+        if node is None:
+            return []
+    model = _model_in(node)
+    return [name for name in model.model_fields if name != "source"] if model else []
+
+
+def _did_you_mean(error: dict[str, Any]) -> str | None:
+    """For an unknown key: the known key it most likely misspells, or None."""
+    *parent, key = error["loc"]
+    close = difflib.get_close_matches(str(key), _known_keys(tuple(parent)), n=1, cutoff=0.6)
+    return close[0] if close else None
+
+
 def _describe(error: dict[str, Any]) -> str:
     kind = error["type"]
     ctx = error.get("ctx", {})
     if kind == "missing":
         return "is missing; add it"
     if kind == "extra_forbidden":
-        return f"is not a known key (value {error['input']!r}); remove it or check its spelling"
+        value = error["input"]
+        shown = "" if isinstance(value, dict | list) else f" (value {value!r})"
+        guess = _did_you_mean(error)
+        if guess:
+            return f"is not a known key{shown}; did you mean {guess!r}? rename it"
+        return f"is not a known key{shown}; remove it or check its spelling"
     if kind == "literal_error":
         return f"is {error['input']!r}; expected {ctx.get('expected')}"
     if kind in ("greater_than", "greater_than_equal", "less_than", "less_than_equal"):
@@ -409,16 +492,41 @@ def _describe(error: dict[str, Any]) -> str:
     return f"is {error['input']!r}; expected {message}"
 
 
+def _session_problem(data: dict[str, Any], source: str) -> str:
+    """A message when `data` is a capture session's session.yaml rather than a rig, or ""."""
+    if data.get("kind") != "labkit-session" and not isinstance(data.get("rig"), dict):
+        return ""
+    captured = data.get("rig_source")
+    origin = f" ({captured!r}, the rig_source it records)" if captured else ""
+    return (
+        f"{source} is a capture session file, not a rig; the rig is under its "
+        f"`rig:` key — give the rig YAML the session was captured with{origin}, or save "
+        "that `rig:` section as a rig file of its own"
+    )
+
+
 def rig_from_dict(data: Any, *, source: str = "<rig>") -> Rig:
     """Validate a parsed rig mapping; errors name `source`."""
+    if data is None:
+        raise ConfigError(
+            f"{source}: the rig is empty; give a rig YAML mapping (see rigs/ for examples)"
+        )
     if not isinstance(data, dict):
         raise ConfigError(f"{source}: a rig file must be a YAML mapping, got {type(data).__name__}")
+    session = _session_problem(data, source)
+    if session:
+        raise ConfigError(session)
     try:
         rig = Rig.model_validate({**data, "source": source})
     except ValidationError as error:
         problems = error.errors()
-        first = problems[0]
+        # an unknown key first: a misspelt key is the cause of the "missing" one it hides
+        unknown = [problem for problem in problems if problem["type"] == "extra_forbidden"]
+        first = unknown[0] if unknown else problems[0]
         where = {_union_root(problem["loc"]) for problem in problems}  # union branches repeat
+        guess = _did_you_mean(first) if unknown else None
+        if guess:  # the misspelt key also shows up as its missing twin: one problem
+            where.discard(_key_path((*first["loc"][:-1], guess)))
         more = f" (and {len(where) - 1} more problem(s))" if len(where) > 1 else ""
         text = _describe(first)
         if not first["loc"]:
@@ -454,6 +562,9 @@ def load_rig(path: str | Path) -> Rig:
         where = f" line {mark.line + 1}, column {mark.column + 1}" if mark else ""
         problem = getattr(error, "problem", None) or "invalid YAML"
         raise ConfigError(f"{path}:{where}: {problem}; fix the YAML syntax") from None
+    if data is None:
+        what = "is empty" if not text.strip() else "holds no YAML data (only comments)"
+        raise ConfigError(f"rig file {path} {what}; give a rig YAML file, see rigs/ for examples")
     rig = rig_from_dict(data, source=str(path))
     _check_response_file(rig, path)
     return rig

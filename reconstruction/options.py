@@ -516,20 +516,41 @@ def check_dispersion_model(
             f"images but the raw image is {shape[0]}×{shape[1]} px; use a model calibrated "
             "with this camera at this image size"
         )
-    if correction == "model" and model.direction != "to_reference":
-        raise DataError(
-            f"{where} is a {model.direction} model; reconstruction needs to_reference: "
-            "recalibrate with `labkit calibrate dispersion --direction to_reference` (or "
-            "warp after reconstruction: correction='warp', --correction warp)"
-        )
+    names = {"xylambda": "spectral", "xy": "colour-channel"}
     wanted = "xylambda" if kind == "spectral" else "xy"
-    if model.variables != wanted:
-        names = {"xylambda": "spectral", "xy": "colour-channel"}
-        raise DataError(
-            f"{where} is a {names.get(model.variables, model.variables)} model; a {kind} "
-            f"reconstruction (--latent {kind}) needs a {names[wanted]} model"
+    wrong_kind = model.variables != wanted
+    wrong_direction = correction == "model" and model.direction != "to_reference"
+    if not (wrong_kind or wrong_direction):
+        return model
+    # one message for both problems, so that following it cannot meet the other; options
+    # are named as the caller spells them (OptionError.message: --latent or latent)
+    have = names.get(model.variables, model.variables)
+    reference = "G" if kind == "colour" else "600"
+    if wrong_kind and wrong_direction:
+        template = (
+            f"{where} is a {have} {model.direction} model, but a {kind} reconstruction "
+            f"({{latent}} {kind}) with {{correction}} model needs a {names[wanted]} "
+            f"to_reference model: calibrate one with `labkit calibrate dispersion HDR "
+            f"--reference {reference} --direction to_reference`, or give a {names[wanted]} "
+            f"model of either direction with {{correction}} warp (warping after the "
+            "reconstruction)"
         )
-    return model
+    elif wrong_kind:
+        other = "spectral" if kind == "colour" else "colour"
+        template = (
+            f"{where} is a {have} model, but a {kind} reconstruction ({{latent}} {kind}) "
+            f"needs a {names[wanted]} model: calibrate one with `labkit calibrate dispersion "
+            f"HDR --reference {reference}"
+            + (" --direction to_reference`" if correction == "model" else "`")
+            + f", or reconstruct with {{latent}} {other}"
+        )
+    else:
+        template = (
+            f"{where} is a {model.direction} model, but {{correction}} model needs a "
+            "to_reference one: recalibrate with `labkit calibrate dispersion --direction "
+            "to_reference`, or warp after the reconstruction with {correction} warp"
+        )
+    raise OptionError("dispersion", template)
 
 
 def _choice(option: str, value: object, allowed: tuple[str, ...]) -> None:

@@ -400,9 +400,12 @@ def patch_regions(
     centre = inside & (depth > strip)
     no_centre = np.setdiff1d(ids, np.unique(grid[centre]))
     if no_centre.size:
+        # a caller that chose strip_px may lower it; `labkit evaluate` uses the thesis' width
+        lower = " (or a smaller strip_px)" if strip != STRIP_PX else ""
         raise DataError(
             f"patch(es) {no_centre.tolist()} have no centre: they are no wider than two "
-            f"{strip:g}-px edge strips; lower strip_px or use a larger image of the chart"
+            f"{strip:g}-px edge strips; use a larger image of the chart, whose patches are "
+            f"over {2 * strip:g} px across{lower}"
         )
     return PatchRegions(grid, tuple(int(k) for k in ids), depth, edge, centre, strip)
 
@@ -472,7 +475,9 @@ def ideal_image(
         [np.bincount(group, weights=basis[:, i] * values, minlength=3 * n) for i in range(terms)],
         axis=1,
     )
-    _check_fits(gram, count, ids, terms)
+    tunable = [name for name, chosen in (("strip_px", regions.strip_px != STRIP_PX),
+                                         ("shading_degree", degree != 1)) if chosen]  # fmt: skip
+    _check_fits(gram, count, ids, terms, tunable)
     coef = np.linalg.solve(gram, rhs[..., None])[..., 0]  # (3n, terms)
 
     ideal = np.zeros((*raw.shape, 3))
@@ -580,8 +585,14 @@ def _basis(
     return np.stack(columns, axis=1)
 
 
-def _check_fits(gram: np.ndarray, count: np.ndarray, ids: np.ndarray, terms: int) -> None:
-    """Refuse patch channels with fewer samples than terms or a singular design."""
+def _check_fits(
+    gram: np.ndarray, count: np.ndarray, ids: np.ndarray, terms: int, tunable: list[str]
+) -> None:
+    """Refuse patch channels with fewer samples than terms or a singular design.
+
+    `tunable` names the parameters the caller chose (not left at their defaults): only
+    those are advised, as a command line that uses the defaults cannot change them.
+    """
     few = np.flatnonzero(count < terms)
     if few.size == 0:
         condition = np.linalg.cond(gram)
@@ -593,7 +604,8 @@ def _check_fits(gram: np.ndarray, count: np.ndarray, ids: np.ndarray, terms: int
         raise DataError(
             f"too few centre samples to fit the shading of {where}; a degree-"
             f"{_degree(terms)} polynomial needs {terms} well-spread samples per channel: "
-            "lower strip_px or shading_degree, or use a larger image of the chart"
+            "use a larger image of the chart"
+            + (f" (or lower {' or '.join(tunable)})" if tunable else "")
         )
 
 

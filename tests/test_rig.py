@@ -241,6 +241,18 @@ MALFORMED: list[tuple[str, Mutation, str, str | None]] = [
         ".400",
     ),
     (
+        "unknown-light-source",
+        _set("light", "source", value="laserbeam"),
+        "light.source",
+        "'laserbeam'",
+    ),
+    (
+        "black-level-at-or-above-the-adc-maximum",
+        _set("sim", "sensor", "black_level_dn", value=5000),
+        "sim.sensor: black_level_dn 5000 is not below the 12-bit ADC maximum 4095",
+        None,
+    ),
+    (
         "scene-option-of-another-type",
         _set("sim", "scenes", "disks", "seed", value=3),
         "sim.scenes.disks: scene type 'disks' does not take ['seed']",
@@ -295,13 +307,101 @@ def test_missing_rig_file(tmp_path: Path) -> None:
     _no_internals(str(info.value))
 
 
-@pytest.mark.parametrize(("text", "kind"), [("- 1\n- 2\n", "list"), ("", "NoneType")])
-def test_rig_file_must_be_a_mapping(tmp_path: Path, text: str, kind: str) -> None:
+@pytest.mark.parametrize(
+    ("text", "match"),
+    [
+        ("- 1\n- 2\n", "must be a YAML mapping, got list"),
+        ("", "is empty; give a rig YAML file"),
+        ("# only a comment\n", "holds no YAML data"),
+    ],
+)
+def test_rig_file_must_be_a_mapping(tmp_path: Path, text: str, match: str) -> None:
     path = tmp_path / "not-a-mapping.yaml"
     path.write_text(text, encoding="utf-8")
-    with pytest.raises(ConfigError, match=f"must be a YAML mapping, got {kind}") as info:
+    with pytest.raises(ConfigError, match=match) as info:
         load_rig(path)
     assert str(path) in str(info.value)
+    assert "NoneType" not in str(info.value)
+
+
+def _rig_check(path: Path, capsys) -> str:
+    """`labkit rig check PATH`: must fail with one line; that line."""
+    from labkit.cli import main
+
+    assert main(["rig", "check", str(path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err, err
+    _no_internals(err)
+    return err
+
+
+def test_rig_check_names_an_unknown_light_source_and_the_known_ones(
+    tmp_path: Path, sim_rig_data: dict[str, Any], capsys
+) -> None:
+    data = copy.deepcopy(sim_rig_data)
+    data["light"]["source"] = "laserbeam"
+    path = tmp_path / "rig.yaml"
+    path.write_text(yaml.safe_dump(data), encoding="utf-8")
+    err = _rig_check(path, capsys)
+    assert "light.source is 'laserbeam'" in err, err
+    assert all(name in err for name in ("projector", "D65", "FL2")), err
+    data["light"]["source"] = "d65"
+    path.write_text(yaml.safe_dump(data), encoding="utf-8")
+    assert "did you mean 'D65'" in _rig_check(path, capsys)
+
+
+def test_a_known_light_source_loads(sim_rig_data: dict[str, Any]) -> None:
+    for name in ("projector", "E", "D65", "FL2"):
+        data = copy.deepcopy(sim_rig_data)
+        data["light"]["source"] = name
+        assert rig_from_dict(data, source="inline").light.source == name
+
+
+def test_rig_check_refuses_a_black_level_at_the_adc_maximum(
+    tmp_path: Path, sim_rig_data: dict[str, Any], capsys
+) -> None:
+    data = copy.deepcopy(sim_rig_data)
+    data["sim"]["sensor"].update(black_level_dn=5000, adc_bits=12)
+    path = tmp_path / "rig.yaml"
+    path.write_text(yaml.safe_dump(data), encoding="utf-8")
+    err = _rig_check(path, capsys)
+    assert "black_level_dn 5000" in err and "4095" in err and "adc_bits" in err, err
+    data["sim"]["sensor"].update(adc_bits=14)  # 5000 < 16383: a valid 14-bit black level
+    assert rig_from_dict(data, source="inline").sim.sensor.black_level_dn == 5000
+
+
+def test_a_misspelt_top_level_key_is_named_before_the_key_it_hides(
+    tmp_path: Path, sim_rig_data: dict[str, Any], capsys
+) -> None:
+    data = copy.deepcopy(sim_rig_data)
+    data["camara"] = data.pop("camera")
+    path = tmp_path / "rig.yaml"
+    path.write_text(yaml.safe_dump(data), encoding="utf-8")
+    err = _rig_check(path, capsys)
+    assert "camara is not a known key; did you mean 'camera'?" in err, err
+    assert "is missing" not in err and "more problem" not in err, err
+
+
+def test_a_misspelt_nested_key_gets_a_did_you_mean(sim_rig_data: dict[str, Any]) -> None:
+    data = copy.deepcopy(sim_rig_data)
+    data["sim"]["sensor"]["blacklevel_dn"] = 3
+    with pytest.raises(ConfigError, match="did you mean 'black_level_dn'"):
+        rig_from_dict(data, source="inline")
+
+
+def test_a_session_file_given_as_a_rig_says_so(
+    tmp_path: Path, sim_rig_data: dict[str, Any], capsys
+) -> None:
+    session = {"format": 1, "kind": "labkit-session", "status": "complete",
+               "rig_source": "rigs/lab.yaml", "rig": sim_rig_data}  # fmt: skip
+    path = tmp_path / "session.yaml"
+    path.write_text(yaml.safe_dump(session, sort_keys=False), encoding="utf-8")
+    err = _rig_check(path, capsys)
+    assert f"{path} is a capture session file, not a rig" in err, err
+    assert "`rig:`" in err and "rigs/lab.yaml" in err and "camera.backend" not in err, err
+    del session["kind"]  # an older or hand-made session: its `rig:` mapping gives it away
+    with pytest.raises(ConfigError, match="is a capture session file"):
+        rig_from_dict(session, source="s.yaml")
 
 
 def test_single_bad_exposure_reports_one_problem(

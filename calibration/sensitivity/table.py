@@ -45,6 +45,9 @@ COLUMNS = (
 )
 _REQUIRED = ("wavelength_nm", "r_over_g", "b_over_g")
 
+#: Band wavelengths a table may hold, nm: those of a rig filter (FilterConfig.centre_nm).
+WAVELENGTH_RANGE_NM = (300.0, 1100.0)
+
 #: Two bands closer than this are the same band, nm.
 BAND_TOLERANCE_NM = 0.05
 
@@ -258,6 +261,16 @@ class ChannelSensitivity:
             file and the column (CSV) or key (YAML).
         """
         path = Path(path)
+        if path.is_dir():
+            inside = [path / f"sensitivity.{suffix}" for suffix in ("csv", "yaml")]
+            found = [str(p) for p in inside if p.is_file()]
+            hint = (
+                f"give the table in it: {' or '.join(found)}"
+                if found
+                else f"give a sensitivity table file, such as {inside[0]} as written by "
+                "`labkit calibrate sensitivity`"
+            )
+            raise DataError(f"sensitivity file {path} is a folder, not a file; {hint}")
         if not path.is_file():
             raise DataError(f"sensitivity file {path} does not exist")
         suffix = path.suffix.lower()
@@ -407,8 +420,14 @@ def _build(
     columns: dict[str, list[Any]] = {key: [] for key in COLUMNS}
     for where, row in rows:
         wavelength = number(where, row, "wavelength_nm", required=True)
-        if not 200 <= wavelength <= 2000:
-            raise fail(where, "wavelength_nm", f"is {wavelength:g}; expected 200–2000 nm")
+        if not WAVELENGTH_RANGE_NM[0] <= wavelength <= WAVELENGTH_RANGE_NM[1]:
+            low, high = WAVELENGTH_RANGE_NM
+            raise fail(
+                where,
+                "wavelength_nm",
+                f"is {wavelength:g}; expected a filter band's centre, {low:g}–{high:g} nm "
+                "(the range of a rig filter's centre_nm)",
+            )
         columns["wavelength_nm"].append(wavelength)
         illumination = row.get("illumination")
         columns["illumination"].append(

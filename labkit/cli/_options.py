@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 
 from labkit.cfa import CFA_LAYOUTS
 
@@ -34,13 +35,35 @@ def positive_int(text: str) -> int:
     return value
 
 
+def non_negative_int(text: str) -> int:
+    """An argparse type: an integer ≥ 0, e.g. a random seed (argparse names the option)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{value} is not ≥ 0; give a whole number ≥ 0")
+    return value
+
+
+def finite_float(text: str) -> float:
+    """An argparse type: a finite number (not NaN or ±Inf)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
+    return value
+
+
 def fraction(text: str) -> float:
     """An argparse type: a number in (0, 1] (a fraction, not a percentage)."""
     try:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not 0 < value <= 1:
+    if not 0 < value <= 1:  # NaN fails this too
         raise argparse.ArgumentTypeError(
             f"{text} is not a fraction in (0, 1]"
             + (f" (for {value:g} % give {value / 100:g})" if 1 < value <= 100 else "")

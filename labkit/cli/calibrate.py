@@ -15,7 +15,7 @@ import argparse
 import math
 from pathlib import Path
 
-from labkit.cli._options import fraction
+from labkit.cli._options import fraction, non_negative_int
 
 
 def register(commands: argparse._SubParsersAction) -> None:
@@ -55,9 +55,9 @@ def register(commands: argparse._SubParsersAction) -> None:
     )
     sensitivity.add_argument(
         "--saturation",
-        type=float,
+        type=fraction,
         default=0.95,
-        help="ignore pixels at or above this fraction of saturation (default 0.95)",
+        help="ignore pixels at or above this fraction of saturation, in (0, 1] (default 0.95)",
     )
     sensitivity.set_defaults(handler=_sensitivity)
     _register_vignetting(actions)
@@ -149,7 +149,9 @@ def _register_dispersion(actions: argparse._SubParsersAction) -> None:
         help="auto: correct each image for vignetting before finding keypoints",
     )
     parser.add_argument("--workers", type=int, default=None, help="processes for disk fits")
-    parser.add_argument("--seed", type=int, default=2019, help="cross-validation seed")
+    parser.add_argument(
+        "--seed", type=non_negative_int, default=2019, help="cross-validation seed, ≥ 0"
+    )
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     parser.add_argument("--out", type=Path, required=True, help="model YAML to write")
     parser.set_defaults(handler=_dispersion)
@@ -239,6 +241,13 @@ def _vignetting(args: argparse.Namespace) -> int:
     name = source_of(image)
     if args.mask is not None:
         mask, origin = read_mask(args.mask), f"mask {args.mask}"
+        if mask.shape != image.raw.shape:
+            rows, cols = image.raw.shape
+            raise DataError(
+                f"--mask {args.mask} has shape {mask.shape} but the image it masks, {name}, "
+                f"has shape {image.raw.shape} (rows, cols); give a mask of the raw image's "
+                f"size, {cols}×{rows} px"
+            )
     else:
         try:
             mask, origin = background_mask(image.raw, cfa=image.cfa), "disk-pattern background"
@@ -353,10 +362,9 @@ def _images_rig(
         return load_rig(rig_path)
     sessions = {image.labkit.get("session") for image in images} - {None}
     for session in sorted(sessions):
-        try:
-            rig = Session.open(session).rig
-        except DataError:
-            continue
+        if not (Path(session) / "session.yaml").is_file():
+            continue  # moved or deleted since the merge: look further
+        rig = Session.open(session).rig  # a damaged session is an error, not the default rig
         if response:
             _check_snapshot_response(rig, Path(session))
         return rig

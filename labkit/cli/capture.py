@@ -52,12 +52,19 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def _shape(text: str) -> tuple[int, int]:
+    """``--shape ROWSxCOLS``: both even (whole Bayer quads) and at least 8, as a rig's sensor."""
     try:
         rows, cols = (int(v) for v in text.lower().split("x"))
     except ValueError:
         raise argparse.ArgumentTypeError(
             f"expected ROWSxCOLS such as 256x320, got {text!r}"
         ) from None
+    for name, value in (("ROWS", rows), ("COLS", cols)):
+        if value < 8 or value > 16384 or value % 2:
+            raise argparse.ArgumentTypeError(
+                f"{text!r}: {name} {value} must be even and 8–16384 (whole 2×2 Bayer quads); "
+                "give ROWSxCOLS such as 64x96"
+            )
     return rows, cols
 
 
@@ -124,12 +131,21 @@ def _capture_session(args: argparse.Namespace, rig: Any) -> int:
         session, _ = Session.open_for(args.session, rig)
     else:
         Session.check_creatable(args.session)
-    if resumed and session.status in ("complete", "imported"):
+    if resumed and session.status == "imported":
         print(
-            f"session {args.session} is already {session.status} "
-            f"({len(session.records)} frames); nothing to do"
+            f"session {args.session} was imported ({len(session.records)} frames); capture "
+            "does not add frames to an imported session"
         )
         return 0
+    if resumed and session.status == "complete":
+        todo = _incomplete(session, rig)
+        if not todo:
+            print(
+                f"session {args.session} is already complete ({len(session.records)} frames, "
+                "all match their sha256); nothing to do"
+            )
+            return 0
+        print(f"session {args.session} is marked complete but {todo}", file=sys.stderr)
     if resumed:
         print(
             f"resuming session {args.session} ({len(session.records)} frames stored, "
@@ -182,6 +198,24 @@ def _capture_session(args: argparse.Namespace, rig: Any) -> int:
     return 0
 
 
+def _incomplete(session: Any, rig: Any) -> str:
+    """What a session marked complete still lacks (planned frames without a record,
+    recorded frames missing or corrupt on disk), or ``""``."""
+    from labkit.protocol import build_plan
+
+    plan = build_plan(rig, session.brackets)
+    unrecorded = sum(not session.has(key) for key in plan.keys())
+    damaged = session.verify()
+    parts = []
+    if unrecorded:
+        parts.append(f"{unrecorded} planned frame(s) have no record in frames.jsonl")
+    if plan.pending_meters:
+        parts.append(f"{plan.pending_meters} illumination(s) are not yet metered")
+    if damaged:
+        parts.append(f"{len(damaged)} recorded frame file(s) are missing or corrupt")
+    return " and ".join(parts) + ("; re-capturing them" if parts else "")
+
+
 def _dry_run(rig, args, build_plan, validate_plan, open_hardware) -> int:
     from labkit.session import SESSION_FILE, Session
 
@@ -190,9 +224,14 @@ def _dry_run(rig, args, build_plan, validate_plan, open_hardware) -> int:
     if (args.session / SESSION_FILE).exists():
         session, _ = Session.open_for(args.session, rig, repair=False)  # a dry run writes nothing
         brackets, stored = session.brackets, set(session.records)
+        if session.status == "imported":
+            print(f"session {args.session} was imported; a capture would not add frames to it")
+        stored -= set(_missing_files(session))
+    else:  # the checks of a real run, before anything is captured
+        Session.check_creatable(args.session)
     plan = build_plan(rig, brackets)
     print(plan.describe())
-    if stored:
+    if (args.session / SESSION_FILE).exists():
         todo = sum(key.id not in stored for key in plan.keys())
         print(f"session {args.session}: {len(stored)} frames stored, {todo} still to capture")
     with open_hardware(rig, fast=True, assume_done=True) as hardware:
@@ -204,3 +243,14 @@ def _dry_run(rig, args, build_plan, validate_plan, open_hardware) -> int:
             f"({hardware.slider.slot_count} slots): OK"
         )
     return 0
+
+
+def _missing_files(session: Any) -> list[str]:
+    """Keys of recorded frames whose file is missing or of the wrong size (a real run also
+    checks every sha256, and re-captures what fails)."""
+    missing = []
+    for key, record in session.records.items():
+        path = session.folder / record["file"]
+        if not path.is_file() or path.stat().st_size != record.get("bytes", path.stat().st_size):
+            missing.append(key)
+    return missing

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from labkit.cli._options import finite_float
+
 
 def register(commands: argparse._SubParsersAction) -> None:
     """Add ``labkit dispersion …``."""
@@ -23,10 +25,14 @@ def register(commands: argparse._SubParsersAction) -> None:
         "calibrated region (the keypoints' convex hull and wavelength range).",
     )
     evaluate.add_argument("model", type=Path, help="dispersion model YAML")
-    evaluate.add_argument("--x", type=float, nargs="+", required=True, help="column(s), px")
-    evaluate.add_argument("--y", type=float, nargs="+", required=True, help="row(s), px")
+    evaluate.add_argument("--x", type=finite_float, nargs="+", required=True, help="column(s), px")
+    evaluate.add_argument("--y", type=finite_float, nargs="+", required=True, help="row(s), px")
     evaluate.add_argument(
-        "--wavelength", type=float, nargs="+", default=None, help="wavelength(s), nm (spectral)"
+        "--wavelength",
+        type=finite_float,
+        nargs="+",
+        default=None,
+        help="wavelength(s), nm (spectral)",
     )
     evaluate.add_argument("--channel", default=None, help="R or B (colour-channel models)")
     evaluate.set_defaults(handler=_eval)

@@ -93,12 +93,20 @@ def _evaluate(args: argparse.Namespace) -> int:
         verify_output_file(args.raw, what="raw image")
     raw = read_mosaic(args.raw, cfa=args.cfa)
     images_in = dict(_named_image(spec, raw.raw.shape) for spec in args.image)
+    notes: list[str] = []
     methods = [] if args.baselines == "none" else [m.strip() for m in args.baselines.split(",")]
     model = None
     if args.colour_dispersion is not None:
         from calibration.dispersion_model import load_dispersion_model
 
         model = load_dispersion_model(args.colour_dispersion)
+        if model.variables != "xy":
+            raise DataError(
+                f"--colour-dispersion {args.colour_dispersion} is a spectral (x, y, λ) model "
+                "between filter bands, but evaluate warps the colour channels of its "
+                "baselines: give a colour-channel model (`labkit calibrate dispersion HDR "
+                "--reference G`); a spectral model warps spectral images (`labkit correct warp`)"
+            )
     boxes = labels = truth = None
     if args.labels is not None:
         from labkit.io.plane import read_labels
@@ -117,7 +125,19 @@ def _evaluate(args: argparse.Namespace) -> int:
     elif args.truth:
         raise DataError("--truth needs --scene (the simulator's truth of that scene)")
     if args.truth_colour is not None:
-        truth = _read_rgb(args.truth_colour, raw.raw.shape)
+        truth = _read_rgb(args.truth_colour, raw.raw.shape, option="--truth-colour")
+    _check_geometry(args, raw.raw.shape, boxes, labels)
+    if args.scene is not None and boxes is None:
+        no_score = (
+            f"--scene {args.scene} is not a colour chart, so there is no residual-aberration "
+            "score (it needs a chart's patches: a colorchecker scene, or --labels)"
+        )
+        if truth is None:
+            raise DataError(
+                f"{no_score}, and nothing else to score; add --truth (the simulator's "
+                "truth of this scene) or --truth-colour, or evaluate an image of a chart"
+            )
+        notes.append(f"warning: {no_score}; scoring colour errors only")
     if not methods and not images_in:
         raise DataError("nothing to evaluate: give --baselines or at least one --image")
     images, seconds = baseline_images(raw.raw, cfa=raw.cfa, methods=methods,
@@ -126,23 +146,27 @@ def _evaluate(args: argparse.Namespace) -> int:
     result = evaluate(raw.raw, images, cfa=raw.cfa, boxes=boxes, labels=labels,
                       truth_colour=truth, seconds=seconds)  # fmt: skip
     with staged_output_folder(args.out, command="labkit evaluate", inputs=[args.raw]) as stage:
-        header, rows = _write_evaluation(args, raw, images, result, stage)
+        header, rows = _write_evaluation(args, raw, images, result, stage, notes)
+    for note in notes:
+        print(note)
     for row in rows:
         print("  ".join(f"{h}: {v}" for h, v in zip(header, row, strict=True)))
     print(f"wrote {args.out / 'evaluation.json'}, evaluation.md, evaluation.html")
     return 0
 
 
-def _write_evaluation(args: argparse.Namespace, raw, images: dict, result, stage: Path):
+def _write_evaluation(
+    args: argparse.Namespace, raw, images: dict, result, stage: Path, notes: list[str]
+):
     """The report, figures and JSON of an evaluation, into the staging folder; returns the
-    table (header, rows)."""
+    table (header, rows). `notes` are the command's own warnings, added to the report."""
     from labkit.io import display_on_one_scale, write_png, write_text_atomic
     from labkit.report import Report, file_stem
 
     report = Report(f"labkit evaluate — {args.raw.name}")
     report.paragraph(
         f"Raw image `{args.raw}` ({raw.raw.shape[1]}×{raw.raw.shape[0]}, {raw.cfa}). "
-        + " ".join(result.notes)
+        + " ".join([*result.notes, *(note[0].upper() + note[1:] + "." for note in notes)])
     )
     header, rows = result.table()
     report.table(header, rows)
@@ -164,20 +188,53 @@ def _named_image(spec: str, shape: tuple[int, int]):
     name, sep, path = spec.partition("=")
     if not sep or not name or not path:
         raise DataError(f"--image {spec!r}: expected NAME=PATH.exr, e.g. ours=recon/raw_colour.exr")
-    return name, _read_rgb(Path(path), shape)
+    return name, _read_rgb(Path(path), shape, option=f"--image {spec}")
 
 
-def _read_rgb(path: Path, shape: tuple[int, int]):
+def _read_rgb(path: Path, shape: tuple[int, int], *, option: str):
+    """An RGB EXR in raw camera colour; a spectral EXR (whose R, G, B are an sRGB preview)
+    is refused."""
+    import numpy as np
+
     from labkit.errors import DataError
-    from labkit.io import read_rgb_exr
+    from labkit.io.exr import read_exr
 
-    rgb = read_rgb_exr(path)
+    header, channels = read_exr(path)
+    if "spectralLayoutVersion" in header or any(
+        name.startswith(("S0.", "T.")) for name in channels
+    ):
+        raise DataError(
+            f"{option}: {path} is a spectral EXR, not a colour image (its R, G, B channels "
+            "are an sRGB preview, not raw camera colour); give an RGB EXR in raw camera "
+            "colour, such as the raw_colour.exr of `labkit reconstruct`"
+        )
+    if not {"R", "G", "B"} <= set(channels):
+        raise DataError(
+            f"{option}: {path} has channels {sorted(channels)}; expected R, G, B (an RGB EXR "
+            "in raw camera colour, such as the raw_colour.exr of `labkit reconstruct`)"
+        )
+    rgb = np.stack([channels[c] for c in "RGB"], axis=-1)
     if rgb.shape[:2] != tuple(shape):
         raise DataError(
             f"{path} is {rgb.shape[1]}×{rgb.shape[0]} px but the raw image is "
             f"{shape[1]}×{shape[0]} px; give images of the same raw image"
         )
     return rgb
+
+
+def _check_geometry(args: argparse.Namespace, shape: tuple[int, int], boxes, labels) -> None:
+    """The chart's patches fit the image's edge strips (before any work), naming the option
+    that gave them."""
+    if boxes is None and labels is None:
+        return
+    from labkit.errors import DataError
+    from reconstruction.residual_aberration import patch_regions
+
+    try:
+        patch_regions(shape, boxes=boxes, labels=labels)
+    except DataError as error:
+        where = f"--scene {args.scene}" if boxes is not None else f"--labels {args.labels}"
+        raise DataError(f"{where} in {args.raw} ({shape[1]}×{shape[0]} px): {error}") from None
 
 
 def _world(rig_path: Path | None, shape: tuple[int, int]):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 
@@ -97,6 +98,7 @@ def _hdr(args: argparse.Namespace) -> int:
             previews=not args.no_preview,
             on_frame=lambda: bar.update(),
             on_image=lambda output: (bar.set_postfix_str(output.job.name), report(output)),
+            on_warning=lambda text: print(f"labkit: warning: {text}", file=sys.stderr),
         )
     print("\n\n".join(reports))
     print(f"{len(run.outputs)} HDR image(s) and {run.index}")

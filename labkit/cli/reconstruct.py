@@ -294,7 +294,7 @@ def _prepare(args: argparse.Namespace) -> _Job:
         smoothness = _positive_float(args.spectral_smoothness, "--spectral-smoothness", zero=True)
     balance = None
     if args.band_balance is not None:
-        balance = _positive_float(args.band_balance, "--band-balance", zero=True)
+        balance = _positive_float(args.band_balance, "--band-balance", zero=True, most=1.0)
     patch_px = _even_int(args.patch_px, "--patch-px", 8)
     pad_px = None if args.pad_px is None else _even_int(args.pad_px, "--pad-px", 2)
     _check_out(args.out, inputs=[args.raw, args.dispersion, args.rig])
@@ -311,6 +311,12 @@ def _prepare(args: argparse.Namespace) -> _Job:
     bands = None if args.bands is None else _bands(args.bands)
     _check_weights(args.weights)
 
+    if args.raw.is_dir():
+        raise DataError(
+            f"raw image {args.raw} is a folder; give one raw Bayer mosaic file in it (raw "
+            "EXR, single-channel TIFF/PNG or camera raw file), e.g. an image of `labkit hdr`'s "
+            "DIR/<scene>/<illumination>.exr"
+        )
     if not args.raw.is_file():
         raise DataError(
             f"raw image {args.raw} does not exist; give a raw Bayer mosaic (raw EXR, "
@@ -376,7 +382,10 @@ def _prepare(args: argparse.Namespace) -> _Job:
     except OptionError as error:
         raise ConfigError(error.message(names)) from None
     if args.dispersion is not None:
-        options.check_image(raw.raw.shape, where=f"--dispersion {args.dispersion}")
+        try:
+            options.check_image(raw.raw.shape, where=f"--dispersion {args.dispersion}")
+        except OptionError as error:
+            raise ConfigError(error.message(names)) from None
     return _Job(raw=raw, response_source=source, options=options)
 
 
@@ -403,14 +412,24 @@ def _unreachable(scheduler: str, error: OSError) -> str:
     )
 
 
-def _positive_float(text: str, option: str, *, zero: bool = False) -> float:
-    """A finite number > 0 (≥ 0 with `zero`) from an option's text, or a ConfigError."""
+def _positive_float(
+    text: str, option: str, *, zero: bool = False, most: float | None = None
+) -> float:
+    """A finite number > 0 (≥ 0 with `zero`, ≤ `most` if given) from an option's text, or
+    a ConfigError."""
     try:
         value = float(text)
     except ValueError:
         value = math.nan
-    if not math.isfinite(value) or value < 0 or (value == 0 and not zero):
-        expected = "a number ≥ 0 such as 1e-3" if zero else "a positive number such as 1e-4"
+    bad = not math.isfinite(value) or value < 0 or (value == 0 and not zero)
+    if bad or (most is not None and value > most):
+        if most is not None:
+            low = "[0" if zero else "(0"
+            expected = f"a number in {low}, {most:g}] such as {most / 2:g}"
+        elif zero:
+            expected = "a number ≥ 0 such as 1e-3"
+        else:
+            expected = "a positive number such as 1e-4"
         raise ConfigError(f"{option} is {text!r}; expected {expected}")
     return value
 

@@ -7,6 +7,7 @@ import math
 from pathlib import Path
 
 from labkit.cfa import pixel_format_for
+from labkit.cli._options import non_negative_int
 from labkit.errors import ConfigError
 from labkit.io import raw_preview, write_png, write_raw_tiff
 from labkit.rig import default_rig_path, load_rig
@@ -48,10 +49,12 @@ def register(commands: argparse._SubParsersAction) -> None:
         default=None,
         help="output pixel format depth (default: the rig's)",
     )
-    render.add_argument("--seed", type=int, default=None, help="frame-noise seed")
+    render.add_argument("--seed", type=non_negative_int, default=None, help="frame-noise seed, ≥ 0")
     render.add_argument("--frame-id", type=int, default=1, help="frame number (selects the noise)")
     render.add_argument("--preview", type=Path, default=None, help="also write a PNG preview")
-    render.add_argument("--out", type=Path, required=True, help="output TIFF path")
+    render.add_argument(
+        "--out", type=Path, required=True, help="output raw TIFF path (.tif or .tiff)"
+    )
     render.set_defaults(handler=_render)  # fmt: skip
 
 
@@ -60,6 +63,12 @@ def _render(args: argparse.Namespace) -> int:
 
     if args.exposure <= 0 or not math.isfinite(args.exposure):
         raise ConfigError(f"--exposure must be > 0 s (a finite number), got {args.exposure}")
+    if args.out.suffix.lower() not in (".tif", ".tiff"):
+        given = repr(args.out.suffix) if args.out.suffix else "no suffix"
+        raise ConfigError(
+            f"--out {args.out}: sim render writes a raw TIFF, so the name must end in .tif or "
+            f".tiff (got {given}); e.g. --out {args.out.with_suffix('.tiff')}"
+        )
     outputs = [args.out, *([args.preview] if args.preview else [])]
     check_output_files(outputs)
     rig = SimulatedRig(load_rig(args.rig or default_rig_path()))

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import warnings
 from collections import Counter, defaultdict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -30,7 +31,7 @@ import yaml
 import labkit
 from labkit.blas_threads import fixed_blas_threads
 from labkit.cfa import layout_from_pixel_format, pixel_format_bits
-from labkit.errors import DataError
+from labkit.errors import DataError, DataWarning
 from labkit.frame import DARK, exposure_label
 from labkit.hdr.merge import DarkFrame, HDRResult, SensorLevels, merge_exposures
 from labkit.hdr.stack import ExposureInput, FrameSource
@@ -40,7 +41,7 @@ from labkit.io.exr import RawImage, write_raw_exr
 from labkit.io.output_folder import staged_output_folder
 from labkit.io.preview import raw_preview, write_png
 from labkit.io.tiff import json_default, read_raw_tiff
-from labkit.session import Session
+from labkit.session import MANIFEST_FILE, Session
 
 INDEX_FILE = "hdr.yaml"
 
@@ -76,6 +77,8 @@ class HDRPlan:
     shape: tuple[int, int]
     levels: SensorLevels
     no_dark: bool
+    warnings: list[str] = field(default_factory=list)
+    """Problems that do not stop the merge (a torn last manifest record)."""
 
     @property
     def frame_count(self) -> int:
@@ -132,13 +135,16 @@ def plan_hdr(
     session = Session.open(session_dir)
     folder = session.folder
     records = list(session.records.values())
+    retake = _retake_advice(session)
     if not records:
-        raise DataError(f"session {folder} holds no frames; run `labkit capture` first")
+        raise DataError(_no_frames(session, retake))
     first = records[0]
     shape = tuple(first["shape"])
     cfa = layout_from_pixel_format(first["pixel_format"])
     for record in records:
         if tuple(record["shape"]) != shape:
+            for named in (first, record):  # a record that disagrees with its file is the cause
+                _check_record_shape(folder, named, retake)
             raise DataError(
                 f"session {folder}: frame {record['key']} ({record['file']}) is "
                 f"{record['shape'][0]}×{record['shape'][1]} but frame {first['key']} is "
@@ -161,7 +167,7 @@ def plan_hdr(
             lit[(record["scene"], record["illumination"])][float(record["exposure_s"])].append(
                 record
             )
-    levels = _levels(records, folder)
+    levels = _levels(records, folder, imported=session.status == "imported", retake=retake)
     _check_capacity(_stored_dtype(folder, first), levels, f"frame {first['key']}")
     rig = session.rig
     jobs = []
@@ -171,7 +177,7 @@ def plan_hdr(
         if illuminations and illumination not in illuminations:
             continue
         exposures = [
-            ExposureInput(t, [_source(folder, r, levels) for r in _by_replicate(rs)])
+            ExposureInput(t, [_source(folder, r, levels, retake) for r in _by_replicate(rs)])
             for t, rs in sorted(by_exposure.items())
         ]
         band = rig.filter_for(illumination) if illumination != DARK else None
@@ -182,7 +188,7 @@ def plan_hdr(
             f"session {folder} has no lit frames" + (f" for {wanted}" if wanted else "")
         )
     darks = {
-        t: ExposureInput(t, [_source(folder, r, levels) for r in _by_replicate(rs)])
+        t: ExposureInput(t, [_source(folder, r, levels, retake) for r in _by_replicate(rs)])
         for t, rs in dark_records.items()
     }
     if not no_dark:
@@ -196,7 +202,58 @@ def plan_hdr(
                 "them (`labkit capture` with the same rig and --session), or pass --no-dark "
                 "to subtract only the black level (dark current then stays in the image)"
             )
-    return HDRPlan(folder, jobs, darks, cfa, shape, levels, no_dark)
+    notes = []
+    if session.torn_records:
+        notes.append(
+            f"{folder / MANIFEST_FILE} ends with a torn record (a capture interrupted while "
+            f"writing it): that frame is missing from the merge; {retake} to re-take it"
+        )
+    return HDRPlan(folder, jobs, darks, cfa, shape, levels, no_dark, notes)
+
+
+def _retake_advice(session: Session) -> str:
+    """How to get missing or damaged frames of `session` back."""
+    if session.status == "imported":
+        return "import the frames again (`labkit session import`)"
+    return f"resume the capture (`labkit capture RIG --session {session.folder}`)"
+
+
+def _no_frames(session: Session, retake: str) -> str:
+    """Why a session without records has no frames to merge, and what to do."""
+    folder = session.folder
+    manifest = folder / MANIFEST_FILE
+    on_disk = (
+        sum(1 for p in (folder / "frames").rglob("*.tif*") if p.is_file())
+        if (folder / "frames").is_dir()
+        else 0
+    )
+    if session.torn_records:
+        state = "holds only a torn record"
+    elif not manifest.exists():
+        state = "is missing"
+    elif on_disk:
+        state = "lists no frames"
+    else:
+        return f"session {folder} holds no frames; {retake} to take them"
+    files = f" but {folder / 'frames'} holds {on_disk} frame file(s)" if on_disk else ""
+    restore = f"restore {MANIFEST_FILE} from a backup, or " if on_disk else ""
+    return f"{manifest} {state}{files}; {restore}{retake} to re-take the frames"
+
+
+def _check_record_shape(folder: Path, record: dict, retake: str) -> None:
+    """Raise DataError when a record's shape disagrees with the frame file it names."""
+    try:
+        with tifffile.TiffFile(folder / record["file"]) as tif:
+            stored = tuple(tif.pages[0].shape)
+    except Exception:  # unreadable: reported with the fix when the merge reads it
+        return
+    if stored != tuple(record["shape"]):
+        raise DataError(
+            f"session {folder}: frame {record['key']}: {MANIFEST_FILE} says it is "
+            f"{record['shape'][0]}×{record['shape'][1]} but its file {record['file']} is "
+            f"{'×'.join(map(str, stored))}; {MANIFEST_FILE} is damaged or was edited: restore "
+            f"it from a backup, or delete that frame's line and {retake} to re-take it"
+        )
 
 
 @fixed_blas_threads
@@ -211,6 +268,7 @@ def run_hdr(
     previews: bool = True,
     on_frame: Callable[[], None] | None = None,
     on_image: Callable[[HDROutput], None] | None = None,
+    on_warning: Callable[[str], None] | None = None,
 ) -> HDRRun:
     """Merge every (scene, illumination) of one or more sessions into ``out_dir``.
 
@@ -234,8 +292,18 @@ def run_hdr(
         Also write a PNG preview per image.
     on_frame, on_image : callable or None
         Progress callbacks: after each frame read, after each image written.
+    on_warning : callable or None
+        Receives each problem that does not stop the merge (a session's torn last
+        manifest record); by default it is issued as a :class:`~labkit.errors.DataWarning`.
+        The index lists them too.
     """
     plans = plan_sessions(session_dir, scenes=scenes, illuminations=illuminations, no_dark=no_dark)
+    for plan in plans:
+        for warning in plan.warnings:
+            if on_warning is None:
+                warnings.warn(warning, DataWarning, stacklevel=2)
+            else:
+                on_warning(warning)
     out = Path(out_dir)
     run = HDRRun(out, method)
     details = {"sessions": [str(plan.session) for plan in plans], "method": method}
@@ -403,13 +471,10 @@ def _by_replicate(records: list[dict]) -> list[dict]:
     return sorted(records, key=lambda r: int(r["replicate"]))
 
 
-def _source(folder: Path, record: dict, levels: SensorLevels) -> FrameSource:
+def _source(folder: Path, record: dict, levels: SensorLevels, retake: str) -> FrameSource:
     path = folder / record["file"]
     name = f"frame {record['key']} ({path})"
-    fix = (
-        f"`labkit session show {folder} --verify` lists damaged frames and resuming the "
-        "capture re-takes them"
-    )
+    fix = f"`labkit session show {folder} --verify` lists damaged frames; {retake} to re-take them"
 
     def load() -> np.ndarray:
         try:
@@ -430,7 +495,7 @@ def _source(folder: Path, record: dict, levels: SensorLevels) -> FrameSource:
     return FrameSource(name, load)
 
 
-def _levels(records: list[dict], folder: Path) -> SensorLevels:
+def _levels(records: list[dict], folder: Path, *, imported: bool, retake: str) -> SensorLevels:
     """The one saturation and black level of the frames to merge, from the manifest.
 
     A record without levels (a capture backend that does not report them) takes the
@@ -439,6 +504,7 @@ def _levels(records: list[dict], folder: Path) -> SensorLevels:
     without a bit depth; each frame's counts are checked against the levels when read.
     """
     found: dict[tuple[float, float], dict] = {}
+    counts: Counter[tuple[float, float]] = Counter()
     for record in records:
         saturation = record.get("saturation_dn")
         if saturation is None:
@@ -451,14 +517,31 @@ def _levels(records: list[dict], folder: Path) -> SensorLevels:
                     "or `--saturation DN`"
                 ) from None
         black = record.get("black_level")
-        found.setdefault((float(saturation), float(black or 0.0)), record)
+        level = (float(saturation), float(black or 0.0))
+        found.setdefault(level, record)
+        counts[level] += 1
     if len(found) > 1:
-        (a, first), (b, other) = list(found.items())[:2]
+        common = max(counts, key=counts.__getitem__)
+        odd = next(level for level in found if level != common)
+        record = found[odd]
+        black = f"black level {odd[1]:g} DN"
+        if record.get("black_level") is None:
+            black = "no black level (null, read as 0 DN)"
+        if imported or "levels_from" in record:
+            fix = (
+                "frames and darks of different bit depths cannot be merged: import them "
+                "again with one --bits or --saturation"
+            )
+        else:
+            fix = (
+                f"one capture records one set of levels, so {MANIFEST_FILE} is damaged or was "
+                f"edited: restore it from a backup, or delete that frame's line and {retake} "
+                "to re-take it"
+            )
         raise DataError(
-            f"session {folder}: frame {first['key']} has saturation {a[0]:g} DN and black "
-            f"level {a[1]:g} DN but frame {other['key']} has {b[0]:g} and {b[1]:g} DN; frames "
-            "and darks of different bit depths cannot be merged: import them again with one "
-            "--bits or --saturation"
+            f"session {folder}: frame {record['key']} has saturation {odd[0]:g} DN and {black} "
+            f"but {counts[common]} other frame(s) have saturation {common[0]:g} DN and black "
+            f"level {common[1]:g} DN; {fix}"
         )
     (saturation, black), _ = found.popitem()
     try:
@@ -521,6 +604,7 @@ def _index(plans: list[HDRPlan], run: HDRRun) -> dict[str, Any]:
         "cfa": first.cfa,
         "shape": list(first.shape),
         "software": f"labkit {labkit.__version__}",
+        "warnings": [warning for plan in plans for warning in plan.warnings],
         "images": [
             {
                 "scene": o.job.scene,

@@ -6,7 +6,7 @@ from collections import defaultdict
 
 from labkit.frame import exposure_label
 from labkit.protocol.plan import build_plan
-from labkit.session.store import Session
+from labkit.session.store import MANIFEST_FILE, Session
 
 
 def summarise(session: Session, *, problems: dict[str, str] | None = None) -> str:
@@ -23,9 +23,12 @@ def summarise(session: Session, *, problems: dict[str, str] | None = None) -> st
     ]
     if "camera" in info:
         cam = info["camera"]
-        lines.append(f"  camera    {cam['vendor']} {cam['model']} serial {cam['serial']}")
+        lines.append(
+            f"  camera    {cam.get('vendor')} {cam.get('model')} serial {cam.get('serial')}"
+        )
     if "slider" in info:
-        lines.append(f"  slider    {info['slider']['identity']} on {info['slider']['port']}")
+        slider = info["slider"]
+        lines.append(f"  slider    {slider.get('identity')} on {slider.get('port')}")
     if "imported_from" in info:
         lines.append(f"  imported  from {info['imported_from']}")
     if info["status"] != "imported":
@@ -43,6 +46,11 @@ def summarise(session: Session, *, problems: dict[str, str] | None = None) -> st
         )
     else:
         lines.append(f"  frames    {len(records)}, {session.stored_bytes() / 1e6:.0f} MB")
+    if session.torn_records:
+        lines.append(
+            f"  manifest  {MANIFEST_FILE} ends with {session.torn_records} torn record (a crash "
+            "while writing it): that frame is missing; resume the capture to re-take it"
+        )
     table: dict[tuple, dict[float, int]] = defaultdict(lambda: defaultdict(int))
     for record in records:
         table[record["scene"] or "(dark)", record["illumination"]][record["exposure_s"]] += 1

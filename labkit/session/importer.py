@@ -37,6 +37,7 @@ _FIELD_REGEX = {
     "replicate": r"(?P<replicate>\d+)",
     "exposure": r"(?P<exposure>\d+(?:\.\d*)?(?:[eE][-+]?\d+)?\s*(?:us|µs|ms|s))",
 }
+_BARE_EXPOSURE = r"(?P<exposure>\d+(?:\.\d*)?(?:[eE][-+]?\d+)?)"  # no unit: a hint only
 _UNITS = {"us": 1e-6, "µs": 1e-6, "ms": 1e-3, "s": 1.0}
 _OPEN_WORDS = {"unfiltered", "open", "none", "white", "nofilter", "no-filter", "rgb"}
 
@@ -67,6 +68,23 @@ def compile_pattern(pattern: str) -> re.Pattern[str]:
     if "exposure" not in seen:
         raise ConfigError(f"pattern {pattern!r} needs an {{exposure}} field, e.g. _{{exposure}}_")
     return re.compile("".join(parts) + r"\Z")
+
+
+def _unitless_exposure(files: Sequence[Path], patterns: Sequence[str]) -> tuple[str, str] | None:
+    """(file name, exposure text) of the first file that a pattern would match if
+    {exposure} took a number without unit, or None."""
+    for pattern in patterns:
+        try:
+            regex = re.compile(
+                compile_pattern(pattern).pattern.replace(_FIELD_REGEX["exposure"], _BARE_EXPOSURE)
+            )
+        except ConfigError:
+            continue
+        for path in files:
+            match = regex.match(path.name)
+            if match:
+                return path.name, match.group("exposure")
+    return None
 
 
 def _literal(text: str) -> str:
@@ -130,6 +148,7 @@ def match_files(
     regexes = [compile_pattern(p) for p in patterns]
     resolve = illumination_resolver(rig, mapping)
     groups: dict[tuple, list[tuple[int, str, Path]]] = defaultdict(list)
+    claimed: dict[tuple, Path] = {}  # (scene, illumination, exposure, replicate) given in names
     unmatched: list[Path] = []
     files = sorted(
         p for folder in folders for p in folder.iterdir() if p.suffix.lower() in (".tif", ".tiff")
@@ -156,6 +175,16 @@ def match_files(
             )
         exposure = parse_exposure(fields["exposure"])
         replicate = int(fields.get("replicate") or 0)
+        if fields.get("replicate") is not None:  # a name that gives its replicate: one file each
+            key = (scene, illumination, exposure, replicate)
+            if key in claimed:
+                what = f"{scene}/{illumination}" if scene else "dark"
+                raise DataError(
+                    f"{claimed[key]} and {path} are both {what} at {fields['exposure']} "
+                    f"replicate {replicate}; one frame cannot be imported twice: remove one "
+                    "of them (or the --from folder that repeats the other)"
+                )
+            claimed[key] = path
         groups[scene, illumination, exposure].append((replicate, path.name, path))
     matched = [
         ImportedFile(path, FrameKey(scene, illumination, exposure, index), source)
@@ -213,13 +242,29 @@ def import_session(
     sources = [Path(source)] if isinstance(source, str | Path) else [Path(s) for s in source]
     if not sources:
         raise DataError("give at least one folder of frames to import")
+    seen: dict[Path, Path] = {}
     for folder_in in sources:
         if not folder_in.is_dir():
             raise DataError(f"import source {folder_in} is not a folder")
+        first = seen.get(folder_in.resolve())
+        if first is not None:
+            same = f"--from {folder_in} is given twice"
+            if first != folder_in:
+                same = f"--from {first} and --from {folder_in} are the same folder"
+            raise DataError(f"{same}; give each folder once")
+        seen[folder_in.resolve()] = folder_in
     matched, unmatched = match_files(sources, patterns, rig, mapping)
     if not matched:
         example = unmatched[0].name if unmatched else "(no .tif files)"
         where = ", ".join(str(s) for s in sources)
+        unitless = _unitless_exposure(unmatched, patterns)
+        if unitless:
+            name, value = unitless
+            raise DataError(
+                f"no file in {where} matches {list(patterns)}: in {name}, {{exposure}} "
+                f"{value!r} has no unit; name the files with one (e.g. {value}ms), as "
+                "{exposure} needs us, ms or s"
+            )
         raise DataError(
             f"no file in {where} matches {list(patterns)} (e.g. {example}); check --pattern"
         )

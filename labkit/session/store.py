@@ -15,6 +15,7 @@ import hashlib
 import json
 import math
 import os
+import re
 import threading
 from collections.abc import Callable, Iterable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -35,6 +36,23 @@ SESSION_FORMAT = 1
 SESSION_FILE = "session.yaml"
 MANIFEST_FILE = "frames.jsonl"
 LOG_FILE = "log.jsonl"
+
+#: Every status a session can be in (``running`` also after a crash).
+STATUSES = ("running", "stopped", "failed", "complete", "imported")
+
+#: The sections :meth:`Session.create` always writes, in its order: one of them missing
+#: means a damaged or truncated ``session.yaml`` (``brackets`` and ``runs`` follow ``rig``,
+#: so a file cut anywhere before its end lacks them).
+REQUIRED_SECTIONS: dict[str, type] = {
+    "status": str,
+    "plan_fingerprint": str,
+    "rig": dict,
+    "brackets": dict,
+    "runs": list,
+}
+
+#: Sections written later (by a capture run); when present they must be mappings.
+OPTIONAL_MAPPINGS = ("camera", "slider", "stream_statistics")
 
 
 def now_iso() -> str:
@@ -73,6 +91,101 @@ sha256_file = file_sha256
 """sha256 of a file's bytes (hex): :func:`labkit.io.digest.file_sha256`."""
 
 
+def _not_a_session(folder: Path) -> str:
+    """Why `folder` (which has no ``session.yaml``) is not a session, and what to give."""
+    give = "pass the folder given to `labkit capture --session`"
+    if not folder.exists():
+        return f"session folder {folder} does not exist; {give}"
+    if folder.is_file() and folder.name == SESSION_FILE:
+        return (
+            f"{folder} is the {SESSION_FILE} of a session: give the session folder "
+            f"{folder.parent}, not its {SESSION_FILE}"
+        )
+    if not folder.is_dir():
+        return f"{folder} is a file, not a session folder; {give}"
+    return f"{folder} is not a labkit session (no {SESSION_FILE}); {give}"
+
+
+_RESTORE = "restore it from a backup, or capture again into a new --session folder"
+
+
+def _check_sections(info: dict[str, Any], path: Path) -> None:
+    """Raise DataError unless ``session.yaml`` holds every section the writer writes, a rig
+    snapshot that is whole (it matches its ``plan_fingerprint``, or validates with every
+    key present) and a known status."""
+    problems: list[str] = []
+    missing = [name for name in REQUIRED_SECTIONS if name not in info]
+    if missing:
+        problems.append(f"it has no {', '.join(missing)} section{'s' if len(missing) > 1 else ''}")
+    rig = info.get("rig")
+    if "rig" in info and not isinstance(rig, dict):
+        problems.append(f"rig is {rig!r}, not a mapping")
+    elif isinstance(rig, dict):
+        damage = _rig_damage(rig, info.get("plan_fingerprint"), path)
+        if damage:
+            problems.append(damage)
+    for name, kind in REQUIRED_SECTIONS.items():
+        if name != "rig" and name in info and not isinstance(info[name], kind):
+            problems.append(f"{name} is {info[name]!r}, expected {_KIND_NAMES[kind]}")
+    for name in OPTIONAL_MAPPINGS:
+        if name in info and not isinstance(info[name], dict):
+            problems.append(f"{name} is {info[name]!r}, expected a mapping")
+    if isinstance(info.get("runs"), list) and not all(isinstance(r, dict) for r in info["runs"]):
+        problems.append("runs holds an entry that is not a mapping")
+    if problems:
+        how = "damaged or truncated" if missing else "damaged or was edited"
+        raise DataError(f"{path} is {how}: {'; '.join(problems)}; {_RESTORE}")
+    status = info["status"]
+    if status not in STATUSES:
+        fix = "imported" if "imported_from" in info else "stopped"
+        raise DataError(
+            f"{path}: status {status!r} is not one of {', '.join(STATUSES)}; the file is "
+            f"damaged or was edited: restore it from a backup, or set `status: {fix}`"
+        )
+
+
+_KIND_NAMES = {str: "text", dict: "a mapping", list: "a list"}
+
+
+def _rig_damage(rig: dict[str, Any], fingerprint: Any, path: Path) -> str | None:
+    """What is wrong with a rig snapshot that does not match the session's fingerprint
+    (invalid, or keys missing that the schema would fill with defaults), or None."""
+    try:
+        if plan_fingerprint(rig) == fingerprint:
+            return None  # as written: readable even where a later schema would differ
+    except (TypeError, ValueError):  # not plain JSON data
+        pass
+    try:
+        validated = rig_from_dict(rig, source=str(path))
+    except ConfigError as error:
+        return _rig_key_message(error, path)
+    absent = _first_absent(rig, rig_snapshot(validated))
+    # a whole, valid rig that was edited is read as it is; resuming it is refused (open_for)
+    return f"rig.{absent} is missing" if absent else None
+
+
+def _first_absent(data: dict[str, Any], whole: dict[str, Any], path: str = "") -> str | None:
+    """The key path of the first key of `whole` that `data` lacks, or None."""
+    for key, value in whole.items():
+        where = f"{path}[{key}]" if str(key).isdigit() else f"{path}.{key}" if path else str(key)
+        if key not in data:
+            return where
+        if isinstance(value, dict) and isinstance(data[key], dict):
+            found = _first_absent(data[key], value, where)
+            if found:
+                return found
+    return None
+
+
+def _rig_key_message(error: ConfigError, path: Path) -> str:
+    """A rig validation error about a session's rig snapshot, keyed as in ``session.yaml``
+    (``rig.slider…``) and without the schema's class names."""
+    text = str(error).removeprefix(f"{path}: ").replace("is missing; add it", "is missing")
+    text = re.sub(r"a valid dictionary or instance of \w+", "a mapping", text)
+    top = "|".join(name for name in Rig.model_fields if name != "source")
+    return re.sub(rf"^({top})\b", r"rig.\1", text)
+
+
 class Session:
     """A session folder. Use :meth:`create`, :meth:`open` or :meth:`open_for` to get one."""
 
@@ -80,6 +193,8 @@ class Session:
         self.folder = folder
         self.info = info
         self.records = records
+        self.torn_records = 0
+        """Torn last manifest lines skipped by :meth:`open` (a crash mid-append; 0 or 1)."""
         self._lock = threading.Lock()
 
     # -- opening ---------------------------------------------------------------------------
@@ -120,7 +235,11 @@ class Session:
                 f"session folder {folder} already holds a labkit session; resume it with "
                 f"`labkit capture RIG --session {folder}`, or choose a new --session folder"
             )
-        if folder.exists() and (not folder.is_dir() or any(folder.iterdir())):
+        if folder.exists() and not folder.is_dir():
+            raise ConfigError(
+                f"session folder {folder} is a file, not a folder; choose a new --session folder"
+            )
+        if folder.exists() and any(folder.iterdir()):
             raise ConfigError(
                 f"session folder {folder} is not empty and holds no labkit session; "
                 "choose a new --session folder"
@@ -143,10 +262,7 @@ class Session:
         folder = Path(folder)
         path = folder / SESSION_FILE
         if not path.is_file():
-            raise DataError(
-                f"{folder} is not a labkit session (no {SESSION_FILE}); "
-                "pass the folder given to `labkit capture --session`"
-            )
+            raise DataError(_not_a_session(folder))
         try:
             info = yaml.safe_load(path.read_text(encoding="utf-8"))
         except (yaml.YAMLError, UnicodeDecodeError) as error:
@@ -160,7 +276,11 @@ class Session:
                 f"{path}: session format {info.get('format')!r} is not supported "
                 f"(this labkit reads format {SESSION_FORMAT})"
             )
-        return cls(folder, info, _read_manifest(folder / MANIFEST_FILE, repair=repair))
+        _check_sections(info, path)
+        records, torn = _read_manifest(folder / MANIFEST_FILE, repair=repair)
+        session = cls(folder, info, records)
+        session.torn_records = 0 if repair else torn
+        return session
 
     @classmethod
     def open_for(
@@ -188,7 +308,11 @@ class Session:
     @property
     def rig(self) -> Rig:
         """The rig snapshot the session was captured with."""
-        return rig_from_dict(self.info["rig"], source=str(self.folder / SESSION_FILE))
+        path = self.folder / SESSION_FILE
+        try:
+            return rig_from_dict(self.info["rig"], source=str(path))
+        except ConfigError as error:
+            raise DataError(f"{path}: {_rig_key_message(error, path)}") from None
 
     @property
     def status(self) -> str:
@@ -398,17 +522,20 @@ def key_of(record: dict[str, Any]) -> FrameKey:
     )
 
 
-def _read_manifest(path: Path, *, repair: bool) -> dict[str, dict]:
-    """The records of ``frames.jsonl``; a torn last line (a crash mid-append) is skipped,
-    and cut off the file only when `repair` (a writer about to append)."""
+def _read_manifest(path: Path, *, repair: bool) -> tuple[dict[str, dict], int]:
+    """The records of ``frames.jsonl`` and the number of torn lines skipped (0 or 1): a torn
+    last line (a crash mid-append) is skipped, and cut off the file only when `repair` (a
+    writer about to append)."""
     if not path.exists():
-        return {}
+        return {}, 0
     try:
         data = path.read_bytes()
     except OSError as error:
         raise DataError(f"{path} cannot be read ({error.strerror})") from None
     lines = data.split(b"\n")
+    torn = 0
     if lines and lines[-1] and _torn_append(lines[-1]):  # a crash cut the last append
+        torn = 1
         if repair:
             torn = len(data) - len(lines[-1])
             with open(path, "r+b") as handle:
@@ -436,7 +563,7 @@ def _read_manifest(path: Path, *, repair: bool) -> dict[str, dict]:
                 "re-capture the frame)"
             )
         records[record["key"]] = record
-    return records
+    return records, torn
 
 
 def _torn_append(line: bytes) -> bool:
@@ -471,6 +598,9 @@ def record_problem(record: dict[str, Any], folder: Path) -> str | None:
         return f"shape {shape!r} is not [rows, cols]"
     if len(record["sha256"]) != 64:
         return "sha256 is not 64 hex digits"
+    levels = _levels_problem(record.get("black_level"), record.get("saturation_dn"))
+    if levels:
+        return levels
     size = record.get("bytes")
     if size is not None and (not isinstance(size, int) or size < 0):
         return f"bytes {size!r} is not a file size"
@@ -491,6 +621,21 @@ def record_problem(record: dict[str, Any], folder: Path) -> str | None:
         or not (folder / relative).resolve().is_relative_to(folder.resolve())
     ):
         return f"file {file!r} is not a path inside the session's frames/ folder"
+    return None
+
+
+def _levels_problem(black: Any, saturation: Any) -> str | None:
+    """What is wrong with a record's levels (None: not reported by the camera), or None."""
+    for name, value in (("black_level", black), ("saturation_dn", saturation)):
+        if value is None:
+            continue
+        number = isinstance(value, int | float) and not isinstance(value, bool)
+        if not number or not math.isfinite(value):
+            return f"{name} {value!r} is not a finite number of DN"
+    if black is not None and black < 0:
+        return f"black_level {black!r} is negative"
+    if saturation is not None and saturation <= (black or 0):
+        return f"saturation_dn {saturation!r} is not above the black level {black or 0!r} DN"
     return None
 
 

@@ -36,6 +36,39 @@ def uhp_lamp(wavelengths: np.ndarray) -> Spectra:
     return Spectra(w, power / power.max(), ("projector",))
 
 
+#: Light sources that need no colour-science lookup.
+BUILTIN_ILLUMINANTS = ("projector", "E")
+
+
+def illuminant_names() -> list[str]:
+    """Every name :func:`illuminant` accepts: the built-in sources, then colour-science's."""
+    import colour
+
+    extra = [name for name in colour.SDS_ILLUMINANTS if name not in BUILTIN_ILLUMINANTS]
+    return [*BUILTIN_ILLUMINANTS, *extra]
+
+
+def illuminant_problem(name: str) -> str:
+    """``""`` for a known light source, else what to use instead: a did-you-mean and the
+    known names (``"did you mean 'D65'? known: projector, E, A, …"``).
+
+    The built-in names are checked without importing colour-science.
+    """
+    if name in BUILTIN_ILLUMINANTS:
+        return ""
+    import difflib
+
+    names = illuminant_names()
+    if name in names:
+        return ""
+    close = difflib.get_close_matches(name, names, n=1)
+    if not close:  # case slips: 'd65' for 'D65'
+        folded = {n.lower(): n for n in names}
+        close = [folded[name.lower()]] if name.lower() in folded else []
+    hint = f"did you mean {close[0]!r}? " if close else ""
+    return f"{hint}known: {', '.join(names)}"
+
+
 def illuminant(name: str, wavelengths: np.ndarray) -> Spectra:
     """A light source's relative spectral power on `wavelengths` (nm), peak-normalised.
 
@@ -55,10 +88,7 @@ def illuminant(name: str, wavelengths: np.ndarray) -> Spectra:
     if name == "E":
         return Spectra(w, np.ones_like(w), ("E",))
     if name not in colour.SDS_ILLUMINANTS:
-        raise DataError(
-            f"unknown illuminant {name!r}; use 'projector', 'E' or a colour-science "
-            f"illuminant such as D65, A, FL2"
-        )
+        raise DataError(f"unknown illuminant {name!r}; {illuminant_problem(name)}")
     sd = colour.SDS_ILLUMINANTS[name].copy()
     data = Spectra(np.array(sd.wavelengths), np.array(sd.values), (name,))
     data = data.resample(w, extrapolate="constant")

@@ -294,3 +294,84 @@ def test_a_session_response_file_outside_the_session_is_not_read(probe, workspac
         mentions=["camera.response", "outside the session", "--rig"],
     )  # fmt: skip
     ok(outcome)
+
+
+# -- options and inputs the audit found misread ------------------------------------------------
+def test_a_negative_seed_is_refused_by_the_option(probe, workspace):
+    args, out = _args(workspace, "calibrate dispersion")
+    outcome = probe.case("calibrate dispersion", "bad option").run(
+        [*args, "--seed", "-1"], outputs=[out, *companions(out)], mentions=["--seed", "≥ 0"]
+    )
+    ok(outcome)
+
+
+@pytest.mark.parametrize(
+    ("value", "hint"),
+    [("95", "give 0.95"), ("0", "fraction"), ("nan", "fraction"), ("-1", "fraction")],
+)
+def test_saturation_out_of_range_names_the_option(probe, workspace, value, hint):
+    args, out = _args(workspace, "calibrate sensitivity")
+    outcome = probe.case("calibrate sensitivity", "bad option").run(
+        [*args, "--saturation", value], outputs=[out], mentions=["--saturation", hint]
+    )
+    ok(outcome)
+    assert "gradient_quantile" not in outcome.err
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_a_capture_session_given_as_the_hdr_folder_says_merge_it_first(probe, workspace, command):
+    args, out = _args(workspace, command, hdr="S")
+    outcome = probe.case(command, "mixed input set").run(
+        args, outputs=[out, *companions(out)],
+        mentions=["is a capture session", f"labkit hdr {workspace / 'S'} --out"],
+    )  # fmt: skip
+    ok(outcome)
+    assert f"--out {workspace / 'S'}`" not in outcome.err  # never advise writing into S
+
+
+def test_a_sensitivity_folder_points_to_its_table(probe, workspace):
+    w = workspace
+    args, out = _args(w, "synthesize")
+    args[args.index(str(w / "C" / "sensitivity.csv"))] = str(w / "C")
+    outcome = probe.case("synthesize", "bad option").run(
+        args, outputs=[out], mentions=["is a folder", str(w / "C" / "sensitivity.csv")]
+    )
+    ok(outcome)
+
+
+def test_a_sensitivity_wavelength_out_of_range_names_its_line(probe, workspace):
+    table = workspace / "C" / "sensitivity.csv"
+    lines = table.read_text().splitlines()
+    first = lines[1].split(",")
+    first[0] = "1200"
+    lines[1] = ",".join(first)
+    table.write_text("\n".join(lines) + "\n")
+    args, out = _args(workspace, "synthesize")
+    outcome = probe.case("synthesize", "bad option").run(
+        args, outputs=[out], mentions=["sensitivity.csv", "line 2", "wavelength_nm", "1200"]
+    )
+    ok(outcome)
+
+
+def test_a_mask_of_another_size_names_the_option_and_both_sizes(probe, workspace):
+    np.save(workspace / "mask.npy", np.ones((10, 10)))
+    args, out = _args(workspace, "calibrate vignetting")
+    outcome = probe.case("calibrate vignetting", "bad option").run(
+        [*args, "--mask", workspace / "mask.npy"], outputs=[out, *companions(out)],
+        mentions=["--mask", "mask.npy", "(10, 10)", "(64, 96)"],
+    )  # fmt: skip
+    ok(outcome)
+
+
+def test_a_damaged_session_of_the_hdr_images_is_named_not_replaced_by_the_default_rig(
+    probe, workspace
+):
+    w = workspace
+    assert main(["hdr", str(w / "S"), "--out", str(w / "H3"), "--no-progress", "--quiet"]) == 0
+    text = (w / "S" / "session.yaml").read_text()
+    (w / "S" / "session.yaml").write_text(text[: len(text) // 3])
+    outcome = probe.case("calibrate sensitivity", "hostile session").run(
+        ["calibrate", "sensitivity", w / "H3", "--out", w / "C3"], outputs=[w / "C3"],
+        mentions=["session.yaml", "truncated"],
+    )  # fmt: skip
+    ok(outcome)

@@ -129,8 +129,18 @@ def _dark_bit_flip(w):
     frame.write_bytes(bytes(data))
 
 
+def _manifest_missing(w):
+    (w / "S" / "frames.jsonl").unlink()
+
+
+def _manifest_empty(w):
+    (w / "S" / "frames.jsonl").write_text("")
+
+
+RETAKE = "labkit capture RIG --session"  # advice that works: a resume re-takes damaged frames
+
 BAD_SESSIONS = {
-    "missing": (_missing, ["S"]),
+    "missing": (_missing, ["S does not exist"]),
     "a file": (_a_file, ["S"]),
     "empty folder": (_empty, ["S"]),
     "binary session.yaml": (_binary_yaml, ["session.yaml"]),
@@ -148,8 +158,27 @@ BAD_SESSIONS = {
     "illumination absolute": (_edit_record("illumination", "/tmp/x"), ["/tmp/x"]),
     "bit-flipped frame": (_bit_flip, ["sha256"]),
     "frame of another exposure": (_swapped_exposure, ["sha256"]),
-    "frame deleted": (_frame_deleted, ["r00"]),
-    "frame truncated": (_frame_truncated, ["r00"]),
+    "frame deleted": (_frame_deleted, ["r00", RETAKE]),
+    "frame truncated": (_frame_truncated, ["r00", RETAKE]),
+    "frames.jsonl missing (h04)": (
+        _manifest_missing,
+        ["frames.jsonl is missing but", "frame file(s)", RETAKE],
+    ),
+    "frames.jsonl empty (h03)": (
+        _manifest_empty,
+        ["frames.jsonl lists no frames but", "frame file(s)", RETAKE],
+    ),
+    "record shape not its file's (h05)": (
+        _edit_record("shape", [32, 48]),
+        ["frames.jsonl says it is 32×48 but its file"],
+    ),
+    "record saturation 0 (h06)": (_edit_record("saturation_dn", 0), ["saturation_dn 0"]),
+    "record saturation NaN": (_edit_record("saturation_dn", float("nan")), ["saturation_dn"]),
+    "record black level negative": (_edit_record("black_level", -1), ["black_level -1"]),
+    "record black level null (h08)": (
+        _edit_record("black_level", None),
+        ["no black level (null", "frames.jsonl", RETAKE],
+    ),
     "frame is a folder": (_frame_replaced_by_folder, ["r00"]),
     "frame is a link outside": (_frame_symlink_out, ["r00"]),
     "bit-flipped dark frame": (_dark_bit_flip, ["dark"]),
@@ -321,6 +350,31 @@ def test_a_torn_manifest_line_is_not_repaired_by_a_reader(probe, workspace):
     )
     ok(outcome)
     assert manifest.read_bytes().endswith(b'{"key": "disks/450/10')
+    # h02: not silent: one warning line naming the manifest and the fix
+    warnings = [line for line in outcome.err.splitlines() if "warning" in line]
+    assert len(warnings) == 1, outcome.err
+    assert "frames.jsonl ends with a torn record" in warnings[0] and RETAKE in warnings[0]
+    assert "torn record" in (workspace / "H2" / "hdr.yaml").read_text()
+
+
+def test_a_session_yaml_given_for_its_folder_says_so(probe, workspace):
+    """h26: 'S/session.yaml is not a labkit session (no session.yaml)'."""
+    outcome = probe.case(HDR, "bad session").run(
+        _hdr(workspace, session="S/session.yaml"), outputs=[workspace / "H2"],
+        mentions=["give the session folder", "not its session.yaml"],
+    )  # fmt: skip
+    ok(outcome)
+
+
+def test_a_truncated_session_yaml_is_named_not_its_illumination(probe, workspace):
+    """s17: 'rig … has no illumination 550' on a rig snapshot cut before its light."""
+    path = workspace / "S" / "session.yaml"
+    text = path.read_text()
+    path.write_text(text[: text.index("\n  light:")])
+    outcome = probe.case(HDR, "bad session").run(
+        _hdr(workspace), outputs=[workspace / "H2"], mentions=["session.yaml", "truncated"]
+    )
+    ok(outcome)
 
 
 def test_a_saturated_frame_set_is_not_merged_silently(probe, workspace):

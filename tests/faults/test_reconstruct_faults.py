@@ -107,7 +107,7 @@ BAD_RAWS = {
     "empty file": (_empty, "raw.exr", ["raw.exr"]),
     "text file": (_text, "raw.exr", ["raw.exr"]),
     "missing": (_missing, "raw.exr", ["raw.exr"]),
-    "a folder": (_folder, "raw.exr", ["raw.exr"]),
+    "a folder": (_folder, "raw.exr", ["raw.exr", "is a folder"]),
     "an image of a changed run": (_in_a_changed_run, "H/colorchecker/unfiltered.exr",
                                   ["unfiltered.exr"]),
 }  # fmt: skip
@@ -161,6 +161,7 @@ BAD_OPTIONS = {
     "YAML list as a model": (["--dispersion", "BAD_YAML"], _write("bad.yaml", b"- 1\n- 2\n"),
                              ["bad.yaml"]),
     "missing model": (["--dispersion", "W/none.yaml"], None, ["none.yaml"]),
+    "band balance NaN": (["--band-balance", "nan"], None, ["--band-balance", "[0, 1]"]),
     "bands out of order": (["--bands", "600,450"], None, ["--bands"]),
     "bands not numbers": (["--bands", "a,b"], None, ["--bands"]),
     "rtol zero": (["--rtol", "0"], None, ["--rtol"]),
@@ -328,6 +329,31 @@ def _other_cases(w: Path) -> dict:
                                           "--illumination", "550", "--exposure", "0.01",
                                           "--shape", "100000x100000", "--out", w / "f.tiff"],
                                          [w / "f.tiff"], ["--shape"]),
+        ("evaluate", "a spectral EXR as --image"): (
+            ["evaluate", w / "raw.exr", "--rig", rig, "--scene", "disks", "--out", w / "E",
+             "--image", f"ours={w / 'Y' / 'disks-multispectral.exr'}"], [w / "E"],
+            ["--image", "disks-multispectral.exr", "a spectral EXR, not a colour image"]),
+        ("evaluate", "a scene with nothing to score"): (
+            ["evaluate", w / "raw.exr", "--rig", rig, "--scene", "disks", "--out", w / "E"],
+            [w / "E"], ["--scene disks", "not a colour chart", "--truth"]),
+        ("evaluate", "a chart too small for its edge strips"): (
+            ["evaluate", w / "raw.exr", "--rig", rig, "--scene", "colorchecker", "--out",
+             w / "E"], [w / "E"], ["--scene colorchecker", "have no centre", "larger image"]),
+        ("evaluate", "a spectral model as --colour-dispersion"): (
+            ["evaluate", w / "raw.exr", "--rig", rig, "--scene", "colorchecker", "--out",
+             w / "E", "--colour-dispersion", w / "M" / "model.yaml"], [w / "E"],
+            ["--colour-dispersion", "model.yaml", "--reference G", "labkit correct warp"]),
+        ("sim render", "--out not a TIFF"): (["sim", "render", rig, "--scene", "disks",
+                                              "--illumination", "550", "--exposure", "0.01",
+                                              "--out", w / "f.exr"], [w / "f.exr"],
+                                             ["--out", "f.exr", ".tiff"]),
+        ("sim render", "negative seed"): (["sim", "render", rig, "--scene", "disks",
+                                           "--illumination", "550", "--exposure", "0.01",
+                                           "--seed", "-1", "--out", w / "f.tiff"],
+                                          [w / "f.tiff"], ["--seed", "≥ 0"]),
+        ("dispersion eval", "NaN wavelength"): (["dispersion", "eval", w / "M" / "model.yaml",
+                                                 "--x", "1", "--y", "1", "--wavelength",
+                                                 "nan"], [], ["--wavelength", "nan"]),
         ("dispersion eval", "binary model"): (["dispersion", "eval", w / "bad.exr", "--x", "1",
                                                "--y", "1", "--wavelength", "500"], [],
                                               ["bad.exr"]),
@@ -351,3 +377,52 @@ def test_other_commands_refuse_bad_input_and_outputs(probe, workspace, command, 
         args, outputs=outputs, mentions=mentions
     )
     ok(outcome)
+
+
+#: What a command-line message must not advise: Python names and options labkit lacks.
+API_WORDING = ("correction='warp'", "correct_spectral", "strip_px", "gradient_quantile")
+
+
+@pytest.mark.parametrize(("command", "name"), [
+    ("evaluate", "a chart too small for its edge strips"),
+    ("evaluate", "a spectral model as --colour-dispersion"),
+])  # fmt: skip
+def test_evaluate_advises_only_what_its_user_can_do(probe, workspace, command, name):
+    args, outputs, mentions = _other_cases(workspace)[command, name]
+    outcome = probe.case(command, "bad input or --out").run(
+        args, outputs=outputs, mentions=mentions
+    )
+    ok(outcome)
+    assert not [w for w in API_WORDING if w in outcome.err], outcome.err
+
+
+def test_a_raw_that_is_a_folder_is_named_as_one(probe, workspace):
+    outcome = probe.case(RECONSTRUCT, "bad or degenerate raw").run(
+        _reconstruct(workspace, raw="H"), outputs=[workspace / "R2"],
+        mentions=[f"raw image {workspace / 'H'} is a folder"],
+    )  # fmt: skip
+    ok(outcome)
+
+
+def test_a_spectral_from_reference_model_for_a_colour_latent_reports_both_needs(probe, workspace):
+    """Both problems in one message, in command-line words: following it cannot meet the
+    second (a spectral model for a colour reconstruction) after fixing the first."""
+    w = workspace
+    outcome = probe.case(RECONSTRUCT, "bad calibration or option").run(
+        _reconstruct(w, "--dispersion", w / "M" / "model.yaml"), outputs=[w / "R2"],
+        mentions=["--dispersion", "spectral from_reference model", "--latent colour",
+                  "colour-channel to_reference", "--reference G", "--correction warp"],
+    )  # fmt: skip
+    ok(outcome)
+    assert not [word for word in API_WORDING if word in outcome.err], outcome.err
+
+
+def test_a_scene_that_is_no_chart_is_scored_with_one_warning(probe, workspace):
+    w = workspace
+    outcome = probe.case("evaluate", "no chart").run(
+        ["evaluate", w / "raw.exr", "--rig", w / "rig.yaml", "--scene", "disks", "--truth",
+         "--baselines", "bilinear", "--out", w / "E"], outputs=[w / "E"], expect="ok",
+    )  # fmt: skip
+    ok(outcome)
+    warnings = [line for line in outcome.out.splitlines() if line.startswith("warning:")]
+    assert len(warnings) == 1 and "--scene disks is not a colour chart" in warnings[0], warnings

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import tifffile
+import yaml
 from _faults import another_writer, leftovers, ok, read_only, snapshot
 from _helpers import write_rig
 
@@ -92,7 +93,7 @@ def test_capture_refuses_a_second_writer(probe, workspace):
 @pytest.mark.parametrize(
     ("prepare", "name", "mentions"),
     [
-        (lambda w: (w / "S2").write_text("a file"), "--session a file", ["S2"]),
+        (lambda w: (w / "S2").write_text("a file"), "--session a file", ["S2 is a file"]),
         (
             lambda w: (w / "S2").mkdir() or (w / "S2" / "x.txt").write_text("x"),
             "--session a folder of other files",
@@ -329,3 +330,208 @@ def test_session_import_again_replaces_the_earlier_import(probe, workspace):
     ok(first)
     ok(probe.run(_import(workspace, source), outputs=[workspace / "I"], expect="ok"))
     assert Session.open(workspace / "I").verify() == {}
+
+
+# -- a damaged session.yaml is refused, naming the key and the cause (audit s01–s18) ----------
+def _session_yaml(w: Path) -> Path:
+    return w / "S" / "session.yaml"
+
+
+def _cut_before(marker: str, extra: int = 0):
+    """A spoiler cutting session.yaml before `marker` (plus `extra` characters of it)."""
+
+    def spoil(w: Path) -> None:
+        text = _session_yaml(w).read_text()
+        _session_yaml(w).write_text(text[: text.index(marker) + extra])
+
+    return spoil
+
+
+def _yaml_edit(edit):
+    def spoil(w: Path) -> None:
+        info = yaml.safe_load(_session_yaml(w).read_text())
+        edit(info)
+        _session_yaml(w).write_text(yaml.safe_dump(info, sort_keys=False))
+
+    return spoil
+
+
+def _zero_transmission(info: dict) -> None:
+    info["rig"]["slider"]["positions"]["3"]["filter"]["peak_transmission"] = 0
+
+
+DAMAGED_SESSION_YAML = {
+    "no rig (s08)": (_yaml_edit(lambda info: info.pop("rig")), ["session.yaml", "no rig"]),
+    "an unknown status (s07)": (_yaml_edit(lambda info: info.update(status="exploded")),
+                                ["session.yaml", "status 'exploded'", "status: stopped"]),
+    "cut after slider: (s01)": (_cut_before("\n    driver:"),
+                                ["truncated", "rig.slider is None; expected a mapping"]),
+    "cut before rig.light (s13)": (_cut_before("\n  light:"),
+                                   ["truncated", "rig.light is missing", "brackets"]),
+    "cut inside the plan (s14)": (_cut_before("\n    dark_frames:"),
+                                  ["truncated", "rig.plan.dark_frames is missing"]),
+    "cut mid-word (s16)": (_cut_before("- colorchecker", extra=8),
+                           ["truncated", "rig.plan.scenes names 'colorc'"]),
+    "an invalid rig value (s09)": (
+        _yaml_edit(_zero_transmission),
+        ["edited", "rig.slider.positions[3].filter.peak_transmission is 0"],
+    ),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("name", DAMAGED_SESSION_YAML)
+def test_session_show_refuses_a_damaged_session_yaml(probe, workspace, name):
+    spoil, mentions = DAMAGED_SESSION_YAML[name]
+    spoil(workspace)
+    outcome = probe.case("session show", "damaged session.yaml").run(
+        ["session", "show", workspace / "S"], mentions=mentions
+    )
+    ok(outcome)
+    assert "SliderConfig" not in outcome.err
+
+
+def test_capture_dry_run_refuses_a_truncated_session_yaml(probe, workspace):
+    """s18: the dry run reported '0 still to capture … OK' on a cut-off rig snapshot."""
+    _cut_before("\n  light:")(workspace)
+    outcome = probe.case("capture", "damaged session.yaml").run(
+        [*_capture(workspace, "S")[:4], "--dry-run"], mentions=["session.yaml", "truncated"]
+    )
+    ok(outcome)
+
+
+def test_an_edited_but_whole_rig_snapshot_is_still_read(probe, workspace):
+    """A session.yaml whose rig is whole and valid but differs from its fingerprint (an older
+    or hand-edited session) is read; only a damaged one is refused."""
+    _yaml_edit(lambda info: info["rig"].update(name="renamed"))(workspace)
+    outcome = probe.case("session show", "edited session.yaml").run(
+        ["session", "show", workspace / "S"], expect="ok"
+    )
+    ok(outcome)
+    assert "renamed" in outcome.out
+
+
+@pytest.mark.parametrize(
+    ("target", "mentions"),
+    [("nope", ["nope does not exist"]),
+     ("S/session.yaml", ["give the session folder", "not its session.yaml"])],
+)  # fmt: skip
+def test_session_show_names_a_missing_folder_or_a_session_yaml(probe, workspace, target, mentions):
+    """s12, h26 (same message in hdr): not 'not a labkit session (no session.yaml)'."""
+    outcome = probe.case("session show", "bad session path").run(
+        ["session", "show", workspace / target], mentions=mentions
+    )
+    ok(outcome)
+
+
+def test_session_show_reports_a_torn_last_record(probe, workspace):
+    manifest = workspace / "S" / "frames.jsonl"
+    manifest.write_bytes(manifest.read_bytes() + b'{"key": "torn')
+    outcome = probe.case("session show", "torn manifest").run(
+        ["session", "show", workspace / "S"], expect="ok"
+    )
+    ok(outcome)
+    assert "frames.jsonl ends with 1 torn record" in outcome.out
+
+
+# -- capture: --session and --shape checked in a dry run too; a complete session is verified --
+@pytest.mark.parametrize("dry", [True, False], ids=["dry run (c06)", "real run (c09)"])
+def test_capture_says_a_session_file_is_a_file(probe, workspace, dry):
+    args = ["capture", workspace / "rig.yaml", "--session", workspace / "raw.tiff"]
+    args += ["--dry-run"] if dry else ["--fast", "--yes", "--no-progress"]
+    outcome = probe.case("capture", "bad --session").run(
+        args, outputs=[workspace / "raw.tiff"], mentions=["raw.tiff is a file, not a folder"]
+    )
+    ok(outcome)
+
+
+@pytest.mark.parametrize(
+    ("shape", "mentions"),
+    [("63x95", ["--shape", "'63x95'", "ROWS 63"]), ("64x95", ["--shape", "COLS 95"]),
+     ("4x8", ["--shape", "ROWS 4"])],
+)  # fmt: skip
+def test_capture_checks_shape_as_given(probe, workspace, shape, mentions):
+    """c04, c10: was 'sensor size 95×63' (cols×rows), naming no option."""
+    outcome = probe.case("capture", "bad option").run(
+        [*_capture(workspace), "--dry-run", "--shape", shape], outputs=[workspace / "S2"],
+        mentions=mentions,
+    )  # fmt: skip
+    ok(outcome)
+
+
+def _frame_file(w: Path, index: int = 0) -> Path:
+    return (
+        w
+        / "S"
+        / sorted(Session.open(w / "S").records.values(), key=lambda r: r["key"])[index]["file"]
+    )
+
+
+RESUME_DAMAGE = {
+    "frames.jsonl missing (h14)": lambda w: (w / "S" / "frames.jsonl").unlink(),
+    "frames.jsonl empty (h03)": lambda w: (w / "S" / "frames.jsonl").write_text(""),
+    "a frame deleted (h27)": lambda w: _frame_file(w).unlink(),
+    "a frame truncated (h16)": lambda w: _frame_file(w).write_bytes(
+        _frame_file(w).read_bytes()[:300]
+    ),
+    "a frame replaced by another (h17)": lambda w: shutil.copy(_frame_file(w, 1), _frame_file(w)),
+    "a record deleted": lambda w: (w / "S" / "frames.jsonl").write_text(
+        "".join((w / "S" / "frames.jsonl").read_text().splitlines(keepends=True)[1:])
+    ),
+}
+
+
+@pytest.mark.parametrize("name", RESUME_DAMAGE)
+def test_resuming_a_complete_session_re_takes_missing_or_damaged_frames(probe, workspace, name):
+    """The advice of `labkit hdr` ('resume the capture to re-take them') works: a complete
+    session is checked against its plan and its frames' sha256, not trusted."""
+    w = workspace
+    planned = len(Session.open(w / "S").records)
+    RESUME_DAMAGE[name](w)
+    outcome = probe.case("capture", "resume a damaged session").run(
+        _capture(w, "S"), outputs=[w / "S"], expect="ok"
+    )
+    ok(outcome)
+    assert "marked complete but" in outcome.err and "nothing to do" not in outcome.out
+    session = Session.open(w / "S")
+    assert session.status == "complete" and len(session.records) == planned
+    assert session.verify() == {}
+    ok(probe.run(["hdr", w / "S", "--out", w / "H2", "--no-progress", "--quiet"],
+                 outputs=[w / "H2"], expect="ok"))  # fmt: skip
+    again = probe.run(_capture(w, "S"), outputs=[w / "S"], expect="ok")
+    ok(again)
+    assert "already complete" in again.out
+
+
+# -- session import: a frame given twice; an exposure without unit -------------------------------
+def test_session_import_refuses_the_same_folder_twice(probe, workspace):
+    """i18: every frame was imported twice, renumbered."""
+    source = _source(workspace)
+    outcome = probe.case("session import", "bad source").run(
+        [*_import(workspace, source), "--from", source], outputs=[workspace / "I"],
+        mentions=[f"--from {source} is given twice"],
+    )  # fmt: skip
+    ok(outcome)
+
+
+def test_session_import_refuses_a_frame_given_twice(probe, workspace):
+    """i17: a copy of the source folder doubled every frame."""
+    source = _source(workspace)
+    shutil.copytree(source, workspace / "copy")
+    name = sorted(p.name for p in source.iterdir())[0]
+    outcome = probe.case("session import", "bad source").run(
+        [*_import(workspace, source), "--from", workspace / "copy"], outputs=[workspace / "I"],
+        mentions=[f"src/{name}", f"copy/{name}", "imported twice"],
+    )  # fmt: skip
+    ok(outcome)
+
+
+def test_session_import_says_an_exposure_lacks_its_unit(probe, workspace):
+    """i05: names like disks_450_100_0001.tif got 'no file matches … check --pattern'."""
+    source = _source(workspace)
+    for path in source.iterdir():
+        path.rename(path.with_name(path.name.replace("ms_", "_")))
+    outcome = probe.case("session import", "bad source").run(
+        _import(workspace, source), outputs=[workspace / "I"],
+        mentions=["{exposure}", "has no unit", "ms)"],
+    )  # fmt: skip
+    ok(outcome)

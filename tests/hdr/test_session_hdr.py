@@ -146,12 +146,18 @@ def _edit_manifest(folder: Path, edit) -> None:
 
 def test_mismatched_sizes_and_cfa_are_refused(session_copy, tmp_path):
     from labkit.hdr import plan_hdr
+    from labkit.io import write_raw_tiff
 
     def shrink(lines):
         lines[5]["shape"] = [32, 48]
 
-    _edit_manifest(session_copy, shrink)
-    with pytest.raises(DataError, match=r"is 32×48 but frame .* is 64×96"):
+    _edit_manifest(session_copy, shrink)  # the record lies about its file: it is named
+    with pytest.raises(DataError, match=r"frames.jsonl says it is 32×48 but its file .* 64×96"):
+        plan_hdr(session_copy)
+    record = json.loads((session_copy / "frames.jsonl").read_text().splitlines()[5])
+    image, meta = read_raw_tiff(session_copy / record["file"])
+    write_raw_tiff(session_copy / record["file"], image[:32, :48], meta)  # a smaller frame
+    with pytest.raises(DataError, match=r"is 32×48 but frame .* is 64×96.*different sizes"):
         plan_hdr(session_copy)
 
     def other_cfa(lines):
@@ -192,7 +198,7 @@ def test_cli_prints_the_factor_table_and_one_line_errors(captured, tmp_path, cap
     assert (out / "hdr.yaml").is_file()
     status = main(["hdr", str(tmp_path / "nowhere"), "--out", str(out), "--no-progress"])
     error = capsys.readouterr().err
-    assert status == 2 and error.count("\n") == 1 and "not a labkit session" in error
+    assert status == 2 and error.count("\n") == 1 and "nowhere does not exist" in error
 
 
 # -- a run is one set; frames are verified; session contents stay inside the session --------

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from labkit.errors import ConfigError, DataError
 from labkit.frame import Frame, FrameKey
@@ -149,3 +150,87 @@ def test_dark_keys_and_leftover_temp_files(session: Session) -> None:
     leftover.write_bytes(b"partial")
     assert session.remove_leftovers() == [leftover]
     assert not leftover.exists()
+
+
+# -- a damaged session.yaml or record is refused, naming the key --------------------------------
+def _rewrite_info(session: Session, edit) -> None:
+    info = yaml.safe_load((session.folder / SESSION_FILE).read_text())
+    edit(info)
+    (session.folder / SESSION_FILE).write_text(yaml.safe_dump(info, sort_keys=False))
+
+
+@pytest.mark.parametrize(
+    ("edit", "match"),
+    [
+        (lambda info: info.pop("rig"), r"damaged or truncated: it has no rig section"),
+        (lambda info: info.pop("runs"), r"it has no runs section"),
+        (lambda info: info.update(brackets=None), r"brackets is None, expected a mapping"),
+        (lambda info: info.update(camera="x"), r"camera is 'x', expected a mapping"),
+        (lambda info: info.update(status="exploded"), r"status 'exploded' is not one of"),
+        (lambda info: info["rig"].pop("plan"), r"rig\.plan is missing"),
+        (lambda info: info["rig"]["camera"].update(gain_db=-1), r"rig\.camera\.gain_db is -1"),
+    ],
+)
+def test_a_damaged_session_yaml_is_refused_naming_the_key(session: Session, edit, match) -> None:
+    _rewrite_info(session, edit)
+    with pytest.raises(DataError, match=match):
+        Session.open(session.folder)
+
+
+def test_a_truncated_session_yaml_is_refused_and_an_edited_whole_one_read(
+    session: Session,
+) -> None:
+    path = session.folder / SESSION_FILE
+    whole = path.read_text()
+    for lines in (12, 30, whole.count("\n") - 3):
+        path.write_text("".join(whole.splitlines(keepends=True)[:lines]))
+        with pytest.raises(DataError, match=r"session.yaml is damaged or truncated"):
+            Session.open(session.folder)
+    path.write_text(whole)
+    _rewrite_info(session, lambda info: info["rig"].update(name="renamed"))
+    assert Session.open(session.folder).rig.name == "renamed"  # whole and valid: read
+
+
+def test_open_says_what_the_path_is(session: Session, tmp_path: Path) -> None:
+    with pytest.raises(DataError, match="does not exist"):
+        Session.open(tmp_path / "nowhere")
+    with pytest.raises(DataError, match=r"give the session folder .*s, not its session.yaml"):
+        Session.open(session.folder / SESSION_FILE)
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(DataError, match="is a file, not a session folder"):
+        Session.open(tmp_path / "file")
+    with pytest.raises(ConfigError, match="is a file, not a folder"):
+        Session.check_creatable(tmp_path / "file")
+
+
+@pytest.mark.parametrize(
+    ("levels", "match"),
+    [
+        ({"saturation_dn": 0}, r"saturation_dn 0 is not above the black level 32.0"),
+        ({"saturation_dn": float("nan")}, r"saturation_dn nan is not a finite number"),
+        ({"black_level": -1.0}, r"black_level -1.0 is negative"),
+        ({"black_level": "32"}, r"black_level '32' is not a finite number"),
+    ],
+)
+def test_record_levels_are_checked(session: Session, levels, match) -> None:
+    session.store(_key(0), _frame(0), saturation_dn=4095.0)
+    manifest = session.folder / MANIFEST_FILE
+    record = {**json.loads(manifest.read_text()), **levels}
+    manifest.write_text(json.dumps(record) + "\n")
+    with pytest.raises(DataError, match=rf"line 1 .*{match}"):
+        Session.open(session.folder)
+
+
+def test_levels_not_reported_by_the_camera_are_allowed(session: Session) -> None:
+    frame = _frame(0)
+    frame.extra.pop("black_level")
+    session.store(_key(0), frame)
+    assert Session.open(session.folder).records[_key(0).id]["black_level"] is None
+
+
+def test_a_torn_tail_is_counted_for_readers(session: Session) -> None:
+    session.store(_key(0), _frame(0))
+    manifest = session.folder / MANIFEST_FILE
+    manifest.write_bytes(manifest.read_bytes() + b'{"key": "to')
+    assert Session.open(session.folder).torn_records == 1
+    assert Session.open(session.folder, repair=True).torn_records == 0  # cut off: re-taken
