@@ -24,26 +24,24 @@ def add_cfa_option(parser: argparse.ArgumentParser, *, default: str = "") -> Non
     )
 
 
-def positive_int(text: str) -> int:
-    """An argparse type: an integer ≥ 1 (argparse names the option in its error)."""
+def _whole_number(text: str, minimum: int) -> int:
     try:
         value = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{value} is not ≥ 1")
+    if value < minimum:
+        raise argparse.ArgumentTypeError(f"{value} is not ≥ {minimum}")
     return value
+
+
+def positive_int(text: str) -> int:
+    """An argparse type: an integer ≥ 1 (argparse names the option in its error)."""
+    return _whole_number(text, 1)
 
 
 def non_negative_int(text: str) -> int:
     """An argparse type: an integer ≥ 0, e.g. a random seed (argparse names the option)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"{value} is not ≥ 0; give a whole number ≥ 0")
-    return value
+    return _whole_number(text, 0)
 
 
 def finite_float(text: str) -> float:
