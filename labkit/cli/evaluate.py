@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 from labkit.cli._options import add_cfa_option
@@ -148,7 +149,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     with staged_output_folder(args.out, command="labkit evaluate", inputs=[args.raw]) as stage:
         header, rows = _write_evaluation(args, raw, images, result, stage, notes)
     for note in notes:
-        print(note)
+        print(f"labkit: {note}", file=sys.stderr)
     for row in rows:
         print("  ".join(f"{h}: {v}" for h, v in zip(header, row, strict=True)))
     print(f"wrote {args.out / 'evaluation.json'}, evaluation.md, evaluation.html")

@@ -61,6 +61,24 @@ def register(commands: argparse._SubParsersAction) -> None:
     parser.set_defaults(handler=_hdr)
 
 
+def _warn_of_missing_frames(sessions: list[Path]) -> None:
+    """One warning line per session that lacks frames of its plan (stopped early, or a
+    manifest line lost): the merge goes on with what is there."""
+    from labkit.protocol.summary import missing_frames
+    from labkit.session import Session
+
+    for folder in sessions:
+        session = Session.open(folder)
+        missing, planned = missing_frames(session)
+        if missing and session.records:  # with none, the merge refuses the session itself
+            print(
+                f"labkit: warning: session {folder} ({session.info['status']}) lacks {missing} "
+                f"of its {planned} planned frames; they are left out of the merge — resume the "
+                f"capture (`labkit capture RIG --session {folder}`) to take them",
+                file=sys.stderr,
+            )
+
+
 def _hdr(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
@@ -68,6 +86,7 @@ def _hdr(args: argparse.Namespace) -> int:
     from labkit.io.output_folder import check_output_folder
 
     check_output_folder(args.out, command="labkit hdr", inputs=args.session)
+    _warn_of_missing_frames(args.session)
     plans = plan_sessions(
         args.session, scenes=args.scene, illuminations=args.illumination, no_dark=args.no_dark
     )

@@ -70,6 +70,8 @@ def _render(args: argparse.Namespace) -> int:
             f".tiff (got {given}); e.g. --out {args.out.with_suffix('.tiff')}"
         )
     outputs = [args.out, *([args.preview] if args.preview else [])]
+    if args.preview:  # named by its own option where it alone is the problem
+        check_output_files([args.preview], option="--preview")
     check_output_files(outputs)
     rig = SimulatedRig(load_rig(args.rig or default_rig_path()))
     camera = SimCamera(rig, fast=True, seed=args.seed)

@@ -9,6 +9,15 @@ from labkit.protocol.plan import build_plan
 from labkit.session.store import MANIFEST_FILE, Session
 
 
+def missing_frames(session: Session) -> tuple[int, int]:
+    """(frames the session's plan has no record of, frames planned); (0, 0) for an imported
+    session, which has no plan."""
+    if session.info["status"] == "imported":
+        return 0, 0
+    keys = list(build_plan(session.rig, session.brackets).keys())
+    return sum(not session.has(k) for k in keys), len(keys)
+
+
 def summarise(session: Session, *, problems: dict[str, str] | None = None) -> str:
     """Status, devices, frames per scene × illumination × exposure, darks, auto choices."""
     info = session.info

@@ -553,14 +553,16 @@ def _read_manifest(path: Path, *, repair: bool) -> tuple[dict[str, dict], int]:
         if not isinstance(record, dict) or not isinstance(record.get("key"), str):
             raise DataError(
                 f"{path} line {number} is not a frame record; the manifest is damaged "
-                "(restore it from a backup, or delete that line to re-capture the frame)"
+                "(restore it from a backup, or delete that line and resume the capture, "
+                f"`labkit capture RIG --session {path.parent}`, to re-take the frame)"
             )
         problem = record_problem(record, path.parent)
         if problem:
             raise DataError(
                 f"{path} line {number} (frame {record['key']!r}): {problem}; the manifest is "
-                "damaged or was edited (restore it from a backup, or delete that line to "
-                "re-capture the frame)"
+                "damaged or was edited (restore it from a backup, or delete that line and "
+                f"resume the capture, `labkit capture RIG --session {path.parent}`, to re-take "
+                "the frame)"
             )
         records[record["key"]] = record
     return records, torn

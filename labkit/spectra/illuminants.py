@@ -66,7 +66,10 @@ def illuminant_problem(name: str) -> str:
         folded = {n.lower(): n for n in names}
         close = [folded[name.lower()]] if name.lower() in folded else []
     hint = f"did you mean {close[0]!r}? " if close else ""
-    return f"{hint}known: {', '.join(names)}"
+    common = [n for n in ("A", "D50", "D65", "FL2", "FL11") if n in names]
+    shown = ", ".join([*BUILTIN_ILLUMINANTS, *common])
+    builtin = " and ".join(BUILTIN_ILLUMINANTS)
+    return f"{hint}known: {shown}, … ({builtin} and every name in colour.SDS_ILLUMINANTS)"
 
 
 def illuminant(name: str, wavelengths: np.ndarray) -> Spectra:

@@ -357,6 +357,18 @@ def test_a_torn_manifest_line_is_not_repaired_by_a_reader(probe, workspace):
     assert "torn record" in (workspace / "H2" / "hdr.yaml").read_text()
 
 
+def test_a_session_lacking_planned_frames_is_merged_with_one_warning(probe, workspace):
+    manifest = workspace / "S" / "frames.jsonl"
+    manifest.write_text("".join(manifest.read_text().splitlines(keepends=True)[1:]))
+    outcome = probe.case(HDR, "torn manifest").run(
+        _hdr(workspace), outputs=[workspace / "H2"], expect="ok"
+    )
+    ok(outcome)
+    warnings = [line for line in outcome.err.splitlines() if "warning" in line]
+    assert len(warnings) == 1 and "lacks 1 of its" in warnings[0], outcome.err
+    assert RETAKE in warnings[0]
+
+
 def test_a_session_yaml_given_for_its_folder_says_so(probe, workspace):
     """h26: 'S/session.yaml is not a labkit session (no session.yaml)'."""
     outcome = probe.case(HDR, "bad session").run(

@@ -424,5 +424,5 @@ def test_a_scene_that_is_no_chart_is_scored_with_one_warning(probe, workspace):
          "--baselines", "bilinear", "--out", w / "E"], outputs=[w / "E"], expect="ok",
     )  # fmt: skip
     ok(outcome)
-    warnings = [line for line in outcome.out.splitlines() if line.startswith("warning:")]
+    warnings = [line for line in outcome.err.splitlines() if line.startswith("labkit: warning:")]
     assert len(warnings) == 1 and "--scene disks is not a colour chart" in warnings[0], warnings
