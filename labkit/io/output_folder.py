@@ -9,9 +9,14 @@ therefore leaves the previous complete set, or nothing: never some new files bes
 ones. A killed run's staging folder is hidden and removed by the next run into the same
 folder.
 
-Only one writer may hold an output folder: an OS file lock (``flock``) on a hidden lock file
-beside it, which the kernel releases when its process dies, so a ``kill -9`` never leaves a
-stale lock. A second writer is refused at once with a message naming the holder.
+A result file with companions (a model and its plots: :func:`staged_output_files`) is
+staged the same way and put in place one rename at a time, after a journal that lets the
+next writer finish a set a kill interrupted; readers refuse such a set meanwhile
+(:func:`check_file_set`). A folder whose files name each other by absolute path (the demo)
+is written in place under a marker instead (:func:`output_folder_in_place`).
+
+Only one writer may hold an output: :mod:`labkit.io.writer_lock` (:func:`writer_lock` and
+:func:`lock_file_of` are re-exported here).
 
 Readers call :func:`verify_output_folder`: a folder with a run manifest must match it, file
 by file; a folder without one was assembled by hand (e.g. images from another program) and
@@ -24,13 +29,10 @@ import contextlib
 import ctypes
 import datetime as dt
 import errno
-import fcntl
 import json
 import os
 import shutil
-import socket
 import tempfile
-import threading
 import time
 import uuid
 from collections.abc import Iterator, Sequence
@@ -41,6 +43,7 @@ import labkit
 from labkit.errors import ConfigError, DataError
 from labkit.io.atomic import atomic_path, process_umask
 from labkit.io.digest import file_sha256
+from labkit.io.writer_lock import held_by_another, lock_file_of, writer_lock
 
 RUN_MANIFEST = "labkit-run.json"
 """Name of the run manifest inside an output folder."""
@@ -52,8 +55,6 @@ RUNNING = ".labkit-run.running"
 has not finished: the folder is incomplete until its run manifest replaces the marker."""
 
 _STAGING = ".staging-"
-_HELD: dict[str, tuple[int, int]] = {}  # lock file → (fd, depth): reentrant in a process
-_HELD_GUARD = threading.Lock()
 
 
 # -- checking ------------------------------------------------------------------------------
@@ -144,99 +145,6 @@ def _check_creatable(path: Path, message: str) -> None:
         )
     if not os.access(existing, os.W_OK | os.X_OK):
         raise ConfigError(f"{message} {existing}; choose a writable place")
-
-
-# -- locking -------------------------------------------------------------------------------
-def lock_file_of(target: str | Path) -> Path:
-    """The hidden lock file guarding `target` (beside it, since `target` itself is replaced)."""
-    target = Path(target)
-    parent = Path(os.path.realpath(target.parent))
-    return parent / f".{target.name}.lock"
-
-
-@contextlib.contextmanager
-def writer_lock(target: str | Path, *, command: str, option: str = "--out") -> Iterator[None]:
-    """Hold the only writer's lock of `target` (a file or folder) for the block.
-
-    Re-entrant within a process (a command may lock its output up front and its writer
-    lock it again). The lock is an ``flock`` on ``.<name>.lock`` beside `target`; the
-    kernel drops it when the process dies. The lock file is removed on release.
-
-    Raises
-    ------
-    ConfigError
-        Another process holds the lock: the message names it (pid, host, command, since).
-    """
-    path = lock_file_of(target)
-    key = str(path)
-    with _HELD_GUARD:
-        held = _HELD.get(key)
-        if held is not None:
-            _HELD[key] = (held[0], held[1] + 1)
-    if held is None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd = _acquire(path, target=Path(target), command=command, option=option)
-        with _HELD_GUARD:
-            _HELD[key] = (fd, 1)
-    try:
-        yield
-    finally:
-        with _HELD_GUARD:
-            fd, depth = _HELD[key]
-            if depth > 1:
-                _HELD[key] = (fd, depth - 1)
-            else:
-                del _HELD[key]
-                depth = 0
-        if depth == 0:
-            with contextlib.suppress(FileNotFoundError):
-                path.unlink()  # while still locked: a waiter re-checks the inode
-            os.close(fd)
-
-
-def _acquire(path: Path, *, target: Path, command: str, option: str) -> int:
-    """Open and ``flock`` the lock file; retries if it was replaced meanwhile."""
-    for _ in range(20):
-        try:
-            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666)
-        except OSError as error:
-            raise ConfigError(
-                f"{option} {target}: cannot create its lock file {path} ({error.strerror}); "
-                "choose a writable place"
-            ) from None
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            holder = _holder(fd)
-            os.close(fd)
-            raise ConfigError(
-                f"{option} {target} is being written by another labkit run ({holder}); wait "
-                "for it to finish or stop it, or choose another folder"
-            ) from None
-        try:
-            same = os.fstat(fd).st_ino == os.stat(path).st_ino
-        except FileNotFoundError:
-            same = False
-        if same:
-            info = {
-                "pid": os.getpid(),
-                "host": socket.gethostname(),
-                "command": command,
-                "since": _now(),
-            }
-            os.ftruncate(fd, 0)
-            os.pwrite(fd, json.dumps(info).encode(), 0)
-            return fd
-        os.close(fd)  # the previous holder removed it after we opened it: take the new one
-    raise ConfigError(f"{option} {target}: its lock file {path} keeps changing; try again")
-
-
-def _holder(fd: int) -> str:
-    try:
-        info = json.loads(os.pread(fd, 4096, 0) or b"{}")
-        return f"pid {info['pid']} on {info['host']}, `{info['command']}`, since {info['since']}"
-    except (OSError, ValueError, KeyError, TypeError):
-        return "holder unknown"
 
 
 # -- staging and putting in place ------------------------------------------------------------
@@ -528,7 +436,7 @@ def check_file_set(path: str | Path, *, what: str = "input", wait: float = 5.0) 
         ]
         if not pending:
             return
-        if not _held_by_another(path) or time.monotonic() > deadline:
+        if not held_by_another(path) or time.monotonic() > deadline:
             break
         time.sleep(0.05)
     staging, journal = pending[0]
@@ -538,21 +446,6 @@ def check_file_set(path: str | Path, *, what: str = "input", wait: float = 5.0) 
         "previous run's and its companions the new run's; run that command again to finish "
         "or replace the set"
     )
-
-
-def _held_by_another(target: Path) -> bool:
-    """Whether a live process holds `target`'s writer lock."""
-    try:
-        fd = os.open(lock_file_of(target), os.O_RDONLY)
-    except OSError:
-        return False
-    try:
-        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-    except OSError:
-        return True
-    finally:
-        os.close(fd)
-    return False
 
 
 @contextlib.contextmanager
@@ -830,3 +723,20 @@ def _fsync(folder: Path) -> None:
 
 def _now() -> str:
     return dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds")
+
+
+__all__ = [
+    "RUNNING",
+    "RUN_MANIFEST",
+    "check_file_set",
+    "check_output_files",
+    "check_output_folder",
+    "lock_file_of",
+    "output_folder_in_place",
+    "read_run_manifest",
+    "staged_output_files",
+    "staged_output_folder",
+    "verify_output_file",
+    "verify_output_folder",
+    "writer_lock",
+]
