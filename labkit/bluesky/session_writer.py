@@ -22,9 +22,10 @@ from labkit.bluesky.devices import frame_from_reading
 from labkit.bluesky.plans import BRACKETS, PRIMARY, STATISTICS
 from labkit.errors import DataError
 from labkit.frame import DARK, FrameKey
+from labkit.io.plain import now_iso
 from labkit.protocol.plan import build_plan
 from labkit.rig import rig_from_dict
-from labkit.session.store import FrameWriter, Session, now_iso, plan_fingerprint
+from labkit.session.store import FrameWriter, Session, plan_fingerprint
 
 
 class SessionWriter(CallbackBase):

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
-import datetime as dt
 import errno
 import json
 import os
@@ -41,8 +40,9 @@ from typing import Any
 
 import labkit
 from labkit.errors import ConfigError, DataError
-from labkit.io.atomic import atomic_path, process_umask
+from labkit.io.atomic import atomic_path, fsync_directory, process_umask, write_text_atomic
 from labkit.io.digest import file_sha256
+from labkit.io.plain import now_iso
 from labkit.io.writer_lock import held_by_another, lock_file_of, writer_lock
 
 RUN_MANIFEST = "labkit-run.json"
@@ -186,20 +186,15 @@ def staged_output_folder(
         The disk is full or the folder cannot be written: nothing was changed.
     """
     out = check_output_folder(out, option=option, command=command, inputs=inputs)
-    started = _now()
+    started = now_iso()
     with _staging(out, command=command, option=option) as staging:
         yield staging
-        manifest = _manifest(staging, command=command, started=started, details=details)
-        text = json.dumps(manifest, indent=1, ensure_ascii=False) + "\n"
-        with open(staging / RUN_MANIFEST, "w", encoding="utf-8") as handle:
-            handle.write(text)
-            handle.flush()
-            os.fsync(handle.fileno())
+        _write_manifest(staging, command=command, started=started, details=details)
         os.chmod(staging, 0o777 & ~process_umask())
-        _fsync(staging)
+        fsync_directory(staging)
         check_output_folder(out, option=option, command=command, inputs=inputs)  # unchanged?
         _put_in_place(staging, out)
-    _fsync(out.parent)
+    fsync_directory(out.parent)
 
 
 @contextlib.contextmanager
@@ -225,27 +220,24 @@ def output_folder_in_place(
         The disk is full or the folder cannot be written.
     """
     out = check_output_folder(out, option=option, command=command)
-    started = _now()
+    started = now_iso()
     with _staging(out, command=command, option=option) as aside:
         previous = aside / "previous"
         if out.exists():
             os.rename(out, previous)
         out.mkdir()
         marker = {"command": command, "pid": os.getpid(), "started": started}
-        (out / RUNNING).write_text(json.dumps(marker) + "\n", encoding="utf-8")
+        write_text_atomic(out / RUNNING, json.dumps(marker) + "\n")
         try:
             yield out
-            manifest = _manifest(out, command=command, started=started, details=None)
-            text = json.dumps(manifest, indent=1, ensure_ascii=False) + "\n"
-            with atomic_path(out / RUN_MANIFEST) as part:
-                part.write_text(text, encoding="utf-8")
+            _write_manifest(out, command=command, started=started)
             (out / RUNNING).unlink()
         except BaseException:
             shutil.rmtree(out, ignore_errors=True)
             if previous.exists():
                 os.rename(previous, out)
             raise
-    _fsync(out.parent)
+    fsync_directory(out.parent)
 
 
 def _read_running(folder: Path) -> dict[str, Any]:
@@ -357,19 +349,13 @@ def _write_journal(staging: Path, pairs: Sequence[tuple[Path, Path]], *, command
     journal = {
         "command": command,
         "pid": os.getpid(),
-        "written": _now(),
+        "written": now_iso(),
         "renames": [
             {"staged": temp.name if temp.exists() else None, "target": os.path.abspath(path)}
             for temp, path in pairs
         ],
     }
-    part = staging / f"{_JOURNAL}.part"
-    with open(part, "w", encoding="utf-8") as handle:
-        json.dump(journal, handle)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(part, staging / _JOURNAL)
-    _fsync(staging)
+    write_text_atomic(staging / _JOURNAL, json.dumps(journal))
 
 
 def _read_journal(staging: Path) -> dict[str, Any] | None:
@@ -407,7 +393,7 @@ def _roll_forward(staging: Path) -> None:
         elif temp.exists():
             _move_into_place(temp, path)
     for folder in {path.parent for _, path in journal["renames"]}:
-        _fsync(folder)
+        fsync_directory(folder)
     (staging / _JOURNAL).unlink()
 
 
@@ -541,6 +527,15 @@ def _disk_errors(out: Path, option: str) -> Iterator[None]:
         raise
 
 
+def _write_manifest(
+    folder: Path, *, command: str, started: str, details: dict[str, Any] | None = None
+) -> None:
+    """Write `folder`'s run manifest (:data:`RUN_MANIFEST`), atomically and durably."""
+    manifest = _manifest(folder, command=command, started=started, details=details)
+    text = json.dumps(manifest, indent=1, ensure_ascii=False) + "\n"
+    write_text_atomic(folder / RUN_MANIFEST, text)
+
+
 def _manifest(
     staging: Path, *, command: str, started: str, details: dict[str, Any] | None
 ) -> dict[str, Any]:
@@ -559,7 +554,7 @@ def _manifest(
         "command": command,
         "software": f"labkit {labkit.__version__}",
         "started": started,
-        "finished": _now(),
+        "finished": now_iso(),
         **(details or {}),
         "files": files,
     }
@@ -711,18 +706,6 @@ def _hidden(relative: Path) -> bool:
 
 def _inside(path: Path, folder: Path) -> bool:
     return Path(os.path.realpath(path)).is_relative_to(os.path.realpath(folder))
-
-
-def _fsync(folder: Path) -> None:
-    fd = os.open(folder, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def _now() -> str:
-    return dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds")
 
 
 __all__ = [

@@ -1,7 +1,9 @@
-"""Values made safe for YAML files: numpy scalars and arrays, tuples and paths → plain Python."""
+"""Values made safe for YAML files: numpy scalars and arrays, tuples and paths → plain Python;
+and the time stamp labkit writes into its files."""
 
 from __future__ import annotations
 
+import datetime as dt
 import math
 from collections.abc import Mapping
 from pathlib import PurePath
@@ -27,3 +29,8 @@ def to_plain(value: Any) -> Any:
     if isinstance(value, float) and not math.isfinite(value):
         return None
     return value
+
+
+def now_iso() -> str:
+    """Current UTC time, ISO 8601 to the millisecond (the time stamps of labkit's files)."""
+    return dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds")

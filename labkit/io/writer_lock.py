@@ -9,7 +9,6 @@ second writer is refused at once with a message naming the holder.
 from __future__ import annotations
 
 import contextlib
-import datetime as dt
 import fcntl
 import json
 import os
@@ -19,6 +18,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from labkit.errors import ConfigError
+from labkit.io.plain import now_iso
 
 _HELD: dict[str, tuple[int, int]] = {}  # lock file → (fd, depth): reentrant in a process
 _HELD_GUARD = threading.Lock()
@@ -99,7 +99,7 @@ def _acquire(path: Path, *, target: Path, command: str, option: str) -> int:
                 "pid": os.getpid(),
                 "host": socket.gethostname(),
                 "command": command,
-                "since": _now(),
+                "since": now_iso(),
             }
             os.ftruncate(fd, 0)
             os.pwrite(fd, json.dumps(info).encode(), 0)
@@ -129,7 +129,3 @@ def held_by_another(target: Path) -> bool:
     finally:
         os.close(fd)
     return False
-
-
-def _now() -> str:
-    return dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds")

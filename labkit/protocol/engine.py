@@ -18,6 +18,7 @@ from labkit.devices.camera import Camera
 from labkit.devices.slider import FilterSlider
 from labkit.errors import DeviceError, LabkitError
 from labkit.frame import Frame
+from labkit.io.plain import now_iso
 from labkit.protocol.bracketing import choose_bracket, meter
 from labkit.protocol.plan import (
     Capture,
@@ -31,7 +32,7 @@ from labkit.protocol.plan import (
 )
 from labkit.protocol.stage import Stage
 from labkit.rig import Rig
-from labkit.session.store import FrameWriter, Session, now_iso
+from labkit.session.store import FrameWriter, Session
 
 
 class Progress(Protocol):

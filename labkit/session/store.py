@@ -10,7 +10,6 @@ pointing at a partial file. ``session.yaml`` is rewritten atomically.
 
 from __future__ import annotations
 
-import datetime as dt
 import hashlib
 import json
 import math
@@ -29,6 +28,7 @@ from labkit.errors import ConfigError, DataError
 from labkit.frame import Frame, FrameKey, path_name_problem
 from labkit.io.atomic import atomic_path, fsync_directory, write_text_atomic
 from labkit.io.digest import file_sha256
+from labkit.io.plain import now_iso
 from labkit.io.tiff import encode_raw_tiff, json_default
 from labkit.rig import Rig, rig_from_dict
 
@@ -53,11 +53,6 @@ REQUIRED_SECTIONS: dict[str, type] = {
 
 #: Sections written later (by a capture run); when present they must be mappings.
 OPTIONAL_MAPPINGS = ("camera", "slider", "stream_statistics")
-
-
-def now_iso() -> str:
-    """Current UTC time, ISO 8601."""
-    return dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds")
 
 
 def rig_snapshot(rig: Rig) -> dict[str, Any]:

@@ -214,7 +214,7 @@ KILLS = {
     "calibrate sensitivity": [("labkit.io.output_folder:_manifest", "before", 1),
                               ("labkit.io.output_folder:_put_in_place", "before", 1)],
     "calibrate dispersion": [("labkit.io.output_folder:_move_into_place", "before", 1),
-                             ("labkit.io.output_folder:_fsync", "before", 1)],
+                             ("labkit.io.output_folder:fsync_directory", "before", 1)],
     "synthesize": [("labkit.io.output_folder:_put_in_place", "after", 1)],
 }  # fmt: skip
 KILL_CASES = [(c, *k) for c, kills in KILLS.items() for k in kills]
