@@ -193,28 +193,14 @@ def _named_image(spec: str, shape: tuple[int, int]):
 
 
 def _read_rgb(path: Path, shape: tuple[int, int], *, option: str):
-    """An RGB EXR in raw camera colour; a spectral EXR (whose R, G, B are an sRGB preview)
-    is refused."""
-    import numpy as np
-
+    """An RGB EXR in raw camera colour (a spectral EXR is refused), named by `option`."""
     from labkit.errors import DataError
-    from labkit.io.exr import read_exr
+    from labkit.io import read_rgb_exr
 
-    header, channels = read_exr(path)
-    if "spectralLayoutVersion" in header or any(
-        name.startswith(("S0.", "T.")) for name in channels
-    ):
-        raise DataError(
-            f"{option}: {path} is a spectral EXR, not a colour image (its R, G, B channels "
-            "are an sRGB preview, not raw camera colour); give an RGB EXR in raw camera "
-            "colour, such as the raw_colour.exr of `labkit reconstruct`"
-        )
-    if not {"R", "G", "B"} <= set(channels):
-        raise DataError(
-            f"{option}: {path} has channels {sorted(channels)}; expected R, G, B (an RGB EXR "
-            "in raw camera colour, such as the raw_colour.exr of `labkit reconstruct`)"
-        )
-    rgb = np.stack([channels[c] for c in "RGB"], axis=-1)
+    try:
+        rgb = read_rgb_exr(path)
+    except DataError as error:
+        raise DataError(f"{option}: {error}") from None
     if rgb.shape[:2] != tuple(shape):
         raise DataError(
             f"{path} is {rgb.shape[1]}×{rgb.shape[0]} px but the raw image is "

@@ -151,11 +151,31 @@ def write_rgb_exr(path: str | Path, rgb: np.ndarray, labkit: dict[str, Any] | No
 
 
 def read_rgb_exr(path: str | Path) -> np.ndarray:
-    """Read an RGB EXR (channels R, G, B) as (rows, cols, 3) float32."""
-    _, channels = read_exr(path)
+    """Read an RGB EXR (channels R, G, B) in camera colour as (rows, cols, 3) float32.
+
+    A spectral EXR is refused: its R, G, B channels are an sRGB preview of the spectra.
+    """
+    header, channels = read_exr(path)
+    if is_spectral_layout(header, list(channels)):
+        raise DataError(
+            f"{path} is a spectral EXR, not a colour image (its R, G, B channels are an sRGB "
+            "preview, not raw camera colour); give an RGB EXR in raw camera colour, such as "
+            "the raw_colour.exr of `labkit reconstruct`"
+        )
     if not {"R", "G", "B"} <= set(channels):
-        raise DataError(f"{path}: expected channels R, G, B (an RGB EXR), got {sorted(channels)}")
+        raise DataError(
+            f"{path} has channels {sorted(channels)}; expected R, G, B (an RGB EXR in raw "
+            "camera colour, such as the raw_colour.exr of `labkit reconstruct`)"
+        )
     return np.stack([channels[c] for c in "RGB"], axis=-1)
+
+
+def is_spectral_layout(header: dict[str, Any], channels: list[str]) -> bool:
+    """Whether a header (and its channel names) is in the Fichet et al. (2021) layout for
+    spectral images (:mod:`labkit.io.spectral_exr`)."""
+    if "spectralLayoutVersion" in header:
+        return True
+    return any(name.startswith(("S0.", "T.")) and name.endswith(("m", "Hz")) for name in channels)
 
 
 def checked_plane(path: str | Path, name: str, plane: np.ndarray) -> np.ndarray:

@@ -39,7 +39,13 @@ import numpy as np
 
 from labkit.errors import ConfigError, DataError
 from labkit.io.atomic import atomic_path
-from labkit.io.exr import FORMAT_VERSION, read_exr, read_exr_header, read_provenance
+from labkit.io.exr import (
+    FORMAT_VERSION,
+    is_spectral_layout,
+    read_exr,
+    read_exr_header,
+    read_provenance,
+)
 from labkit.io.spectral_image import SpectralImage, float32_bands
 from labkit.io.tiff import json_default
 
@@ -125,9 +131,9 @@ def read_spectral_exr(path: str | Path) -> SpectralImage:
     header = read_exr_header(path)  # which layout, before any pixel is decoded
     provenance = read_provenance(path, header)
     names = [channel.name for channel in header.get("channels", [])]
-    if "wavelengths_nm" in header and not _is_layout(header, names):
+    if "wavelengths_nm" in header and not is_spectral_layout(header, names):
         return _read_older_layout(path, provenance, header)
-    if not _is_layout(header, names):
+    if not is_spectral_layout(header, names):
         raise DataError(
             f"{path}: not a spectral EXR (channels {sorted(names)[:8]}…): expected the "
             "Fichet et al. (2021) layout (channels such as 'S0.550nm' or 'T.550nm') or "
@@ -177,13 +183,6 @@ def _read_older_layout(
     except KeyError as missing:
         raise DataError(f"{path}: band channel {missing} is missing") from None
     return SpectralImage(np.stack(planes, axis=-1), wavelengths, provenance)
-
-
-def _is_layout(header: dict[str, Any], channels: list[str]) -> bool:
-    """Whether a header (and its channel names) is in the Fichet et al. (2021) layout."""
-    if "spectralLayoutVersion" in header:
-        return True
-    return any(name.startswith(("S0.", "T.")) and name.endswith(("m", "Hz")) for name in channels)
 
 
 def _linear_srgb(values: np.ndarray, wavelengths: np.ndarray) -> np.ndarray | None:
