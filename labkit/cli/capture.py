@@ -226,7 +226,7 @@ def _dry_run(rig, args, build_plan, validate_plan, open_hardware) -> int:
         brackets, stored = session.brackets, set(session.records)
         if session.status == "imported":
             print(f"session {args.session} was imported; a capture would not add frames to it")
-        stored -= set(_missing_files(session))
+        stored -= set(session.verify(hashes=False))  # a real run also checks each sha256
     else:  # the checks of a real run, before anything is captured
         Session.check_creatable(args.session)
     plan = build_plan(rig, brackets)
@@ -243,14 +243,3 @@ def _dry_run(rig, args, build_plan, validate_plan, open_hardware) -> int:
             f"({hardware.slider.slot_count} slots): OK"
         )
     return 0
-
-
-def _missing_files(session: Any) -> list[str]:
-    """Keys of recorded frames whose file is missing or of the wrong size (a real run also
-    checks every sha256, and re-captures what fails)."""
-    missing = []
-    for key, record in session.records.items():
-        path = session.folder / record["file"]
-        if not path.is_file() or path.stat().st_size != record.get("bytes", path.stat().st_size):
-            missing.append(key)
-    return missing
