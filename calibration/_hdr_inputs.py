@@ -15,6 +15,7 @@ from labkit.errors import DataError
 from labkit.io.exr import RawImage, read_raw_exr
 from labkit.io.light import check_light
 from labkit.io.output_folder import verify_output_folder
+from labkit.session import SESSION_FILE
 
 #: Provenance key under which the loader records the file an image was read from.
 SOURCE_KEY = "source_file"
@@ -98,7 +99,7 @@ def _hdr_root(folder: str | Path) -> Path:
         raise DataError(
             f"HDR folder {root} does not exist; create it with `labkit hdr SESSION --out {root}`"
         )
-    if (root / "session.yaml").is_file():  # labkit.session.SESSION_FILE
+    if (root / SESSION_FILE).is_file():
         merged = root.parent / f"{root.name or 'session'}-hdr"
         raise DataError(
             f"{root} is a capture session, not an HDR folder; merge it first: "

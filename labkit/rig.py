@@ -378,9 +378,16 @@ class Rig(_Strict):
         Files are response CSVs (``wavelength_nm,R,G,B``) or the ``sensitivity.yaml``/
         ``.csv`` that ``labkit calibrate sensitivity`` writes (the thesis' sensor map).
         """
+        file = self.response_file()
+        return self.camera.response if file is None else str(file)
+
+    def response_file(self) -> Path | None:
+        """The camera response's file, resolved relative to the rig file; None where the
+        response is a dataset name (not a ``.csv``/``.yaml`` path)."""
         value = self.camera.response
-        is_file = value.lower().endswith((".csv", ".yaml", ".yml"))
-        return self.resolve_path(value) if is_file else value
+        if not value.lower().endswith((".csv", ".yaml", ".yml")):
+            return None
+        return Path(self.resolve_path(value))
 
     def resolve_path(self, value: str) -> str:
         """A path from the rig file, made absolute relative to the file's folder."""
@@ -572,12 +579,13 @@ def load_rig(path: str | Path) -> Rig:
 
 def _check_response_file(rig: Rig, path: Path) -> None:
     """A response given as a file must exist; a relative path must stay in the rig's folder."""
-    value = rig.camera.response
-    if not value.lower().endswith((".csv", ".yaml", ".yml")):
+    file = rig.response_file()
+    if file is None:
         return  # a dataset name: checked by `labkit rig check` and where it is used
+    value = rig.camera.response
     given = Path(value)
     folder = path.resolve().parent
-    resolved = Path(rig.response_source()).resolve()
+    resolved = file.resolve()
     if not given.is_absolute() and not resolved.is_relative_to(folder):
         raise ConfigError(
             f"{path}: camera.response {value!r} leads outside the rig file's folder "

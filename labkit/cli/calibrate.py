@@ -356,13 +356,13 @@ def _images_rig(
     """
     from labkit.errors import DataError
     from labkit.rig import default_rig_path, load_rig
-    from labkit.session import Session
+    from labkit.session import SESSION_FILE, Session
 
     if rig_path is not None:
         return load_rig(rig_path)
     sessions = {image.labkit.get("session") for image in images} - {None}
     for session in sorted(sessions):
-        if not (Path(session) / "session.yaml").is_file():
+        if not (Path(session) / SESSION_FILE).is_file():
             continue  # moved or deleted since the merge: look further
         rig = Session.open(session).rig  # a damaged session is an error, not the default rig
         if response:
@@ -381,11 +381,9 @@ def _check_snapshot_response(rig, session: Path) -> None:
     session's contents are data, and a path in them is not followed out of its folder."""
     from labkit.errors import DataError
 
-    value = rig.camera.response
-    if not value.lower().endswith((".csv", ".yaml", ".yml")):
-        return  # a dataset name
-    resolved = Path(rig.response_source()).resolve()
-    if not resolved.is_relative_to(session.resolve()):
+    file = rig.response_file()
+    if file is not None and not file.resolve().is_relative_to(session.resolve()):
+        value = rig.camera.response
         raise DataError(
             f"{rig.source}: rig.camera.response {value!r} lies outside the session {session}, "
             "and a session's contents are not followed outside its folder; pass --rig "
