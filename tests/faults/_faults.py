@@ -24,7 +24,7 @@ import subprocess
 import sys
 import textwrap
 from collections import Counter
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -227,6 +227,23 @@ class Probe:
         if result.returncode != -9:
             self.judge_external("traceback", f"not killed: {result.returncode} {result.stderr}")
 
+    def killed_over(
+        self,
+        folder: Path,
+        args: Sequence[object],
+        *,
+        at: str,
+        when: str = "after",
+        n: int = 1,
+        is_new: Callable[[Path], bool],
+    ) -> None:
+        """:meth:`killed` for a run replacing the output `folder`, which must then hold the
+        previous set (unchanged) or the new one (`is_new`), never a mix."""
+        previous = snapshot(folder)
+        self.killed(args, at=at, when=when, n=n)
+        if snapshot(folder) != previous and not is_new(folder):
+            self.judge_external("mixed or partial result", f"{folder} changed, not the new set")
+
     def judge_external(self, verdict: str, why: str = "") -> None:
         """Record a verdict reached outside :meth:`run` (subprocess cases)."""
         self.request.node.user_properties.append(("fault", (self.command, self.kind, verdict)))
@@ -259,6 +276,13 @@ def ok(outcome: Outcome) -> None:
 
 
 # -- subprocess runs: kill -9 at a chosen point, a second writer -------------------------------
+#: Where a run writing a staged output folder can be killed (labkit.io.output_folder).
+FOLDER_KILL_POINTS = {
+    "before the run manifest": ("labkit.io.output_folder:_manifest", "before", 1),
+    "before the swap": ("labkit.io.output_folder:_put_in_place", "before", 1),
+    "right after the swap": ("labkit.io.output_folder:_put_in_place", "after", 1),
+}
+
 _KILLER = textwrap.dedent(
     """
     import importlib, os, signal, sys
