@@ -22,14 +22,15 @@ reads it back and validates every field, naming the file and key of any problem.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal, Protocol
 
 import numpy as np
 import yaml
 
-from calibration._model_files import float_array, read_model_document
+from calibration._model_files import read_model_document
+from calibration.model_domain import CalibratedRegion
 from calibration.polynomial_field import PolynomialField
 from calibration.spline_field import SplineField
 from labkit.errors import ConfigError, DataError
@@ -69,91 +70,6 @@ FIELD_READERS: dict[str, Callable[[Mapping[str, Any], str], DisplacementField]] 
 
 
 @dataclass(frozen=True)
-class CalibratedRegion:
-    """Where a model is backed by keypoints: their convex hull and wavelength range.
-
-    Attributes
-    ----------
-    hull_xy : ndarray (k, 2)
-        Convex hull vertices (x, y) of the model's input positions, counter-clockwise, px.
-    wavelength_nm : (min, max) or None
-        Band wavelengths covered (spectral models), nm.
-    """
-
-    hull_xy: np.ndarray
-    wavelength_nm: tuple[float, float] | None = None
-
-    @classmethod
-    def from_points(
-        cls, x: np.ndarray, y: np.ndarray, wavelength_nm: np.ndarray | None = None
-    ) -> CalibratedRegion:
-        """The region spanned by keypoint positions (and wavelengths)."""
-        points = np.column_stack([np.ravel(x), np.ravel(y)]).astype(np.float64)
-        hull = _convex_hull(points)
-        span = None
-        if wavelength_nm is not None and np.size(wavelength_nm):
-            span = (float(np.min(wavelength_nm)), float(np.max(wavelength_nm)))
-        return cls(hull, span)
-
-    def contains(
-        self, x: np.ndarray, y: np.ndarray, wavelength_nm: np.ndarray | float | None = None
-    ) -> np.ndarray:
-        """Boolean mask: positions inside the hull (and wavelengths inside the range)."""
-        x = np.asarray(x, dtype=np.float64)
-        y = np.asarray(y, dtype=np.float64)
-        inside = np.ones(np.broadcast_shapes(x.shape, y.shape), dtype=bool)
-        hull = self.hull_xy
-        if len(hull) >= 3:
-            for (x0, y0), (x1, y1) in zip(hull, np.roll(hull, -1, axis=0), strict=True):
-                inside &= (x1 - x0) * (y - y0) - (y1 - y0) * (x - x0) >= -1e-9
-        if wavelength_nm is not None and self.wavelength_nm is not None:
-            lo, hi = self.wavelength_nm
-            w = np.asarray(wavelength_nm, dtype=np.float64)
-            inside = inside & (w >= lo - 1e-9) & (w <= hi + 1e-9)
-        return inside
-
-    def to_dict(self) -> dict[str, Any]:
-        out: dict[str, Any] = {"hull_xy": self.hull_xy.tolist()}
-        if self.wavelength_nm is not None:
-            out["wavelength_nm"] = list(self.wavelength_nm)
-        return out
-
-    @classmethod
-    def from_dict(cls, data: Mapping[str, Any], where: str) -> CalibratedRegion:
-        hull = float_array(data.get("hull_xy"), f"{where}.hull_xy")
-        if hull.ndim != 2 or hull.shape[1] != 2:
-            raise ConfigError(f"{where}.hull_xy must be a list of [x, y] pairs")
-        span = data.get("wavelength_nm")
-        if span is not None:
-            span_arr = float_array(span, f"{where}.wavelength_nm")
-            if span_arr.shape != (2,):
-                raise ConfigError(f"{where}.wavelength_nm must be [min, max]")
-            span = (float(span_arr[0]), float(span_arr[1]))
-        return cls(hull, span)
-
-
-def _convex_hull(points: np.ndarray) -> np.ndarray:
-    """Counter-clockwise convex hull (Andrew's monotone chain) of (n, 2) points."""
-    unique = np.unique(points, axis=0)
-    if len(unique) < 3:
-        return unique
-
-    def cross(o: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
-        return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
-
-    def chain(pts: np.ndarray) -> list[np.ndarray]:
-        out: list[np.ndarray] = []
-        for p in pts:
-            while len(out) >= 2 and cross(out[-2], out[-1], p) <= 0:
-                out.pop()
-            out.append(p)
-        return out
-
-    lower, upper = chain(unique), chain(unique[::-1])
-    return np.array(lower[:-1] + upper[:-1])
-
-
-@dataclass(frozen=True)
 class DispersionModel:
     """A calibrated model of lateral chromatic aberration.
 
@@ -173,6 +89,11 @@ class DispersionModel:
         Model selection report (degrees, CV/GCV errors, condition numbers, smoothing).
     provenance : dict
         Keypoint source, input files, software version, band wavelengths.
+    extrapolation : {"allow", "clamp"}
+        Outside the calibrated region: evaluate the fitted function (``"allow"``, the
+        model as fitted), or first move the inputs into the region
+        (:meth:`CalibratedRegion.clamp`; :meth:`within_domain`). Not stored in the file:
+        each use chooses, and says so (:func:`calibration.model_domain.domain_use`).
     """
 
     type: str
@@ -184,8 +105,11 @@ class DispersionModel:
     region: CalibratedRegion
     selection: dict[str, Any] = field(default_factory=dict)
     provenance: dict[str, Any] = field(default_factory=dict)
+    extrapolation: Literal["allow", "clamp"] = "allow"
 
     def __post_init__(self) -> None:
+        if self.extrapolation not in ("allow", "clamp"):
+            raise ConfigError(f"extrapolation must be allow or clamp, not {self.extrapolation!r}")
         if self.variables not in ("xy", "xylambda"):
             raise ConfigError(f"variables must be xy or xylambda, not {self.variables!r}")
         if self.direction not in ("from_reference", "to_reference"):
@@ -196,6 +120,10 @@ class DispersionModel:
             raise ConfigError(f"a spectral model has one field named {SPECTRAL!r}")
         if not self.fields:
             raise ConfigError("a dispersion model needs at least one field")
+
+    def within_domain(self, clamp: bool = True) -> DispersionModel:
+        """This model evaluated inside its calibrated region only (`clamp`), or as fitted."""
+        return replace(self, extrapolation="clamp" if clamp else "allow")
 
     @property
     def channels(self) -> list[str]:
@@ -257,6 +185,11 @@ class DispersionModel:
         points = np.column_stack([a.ravel() for a in arrays])
         if not np.all(np.isfinite(points)):
             raise DataError("dispersion model inputs hold NaN or Inf")
+        if self.extrapolation == "clamp":
+            x_in, y_in, wave_in = self.region.clamp(
+                points[:, 0], points[:, 1], points[:, 2] if points.shape[1] == 3 else None
+            )
+            points = np.column_stack([x_in, y_in] + ([] if wave_in is None else [wave_in]))
         out = np.empty((points.shape[0], 2))
         for start in range(0, points.shape[0], CHUNK_POINTS):
             out[start : start + CHUNK_POINTS] = fld.evaluate(points[start : start + CHUNK_POINTS])

@@ -323,8 +323,16 @@ def reconstruct_and_save(
         "flat": patches["flat"],
         "median_iterations": patches["iterations_median"],
         "exact": patches["exact"],
+        "warnings": list(result.log.get("warnings", [])),
     }
     return result, summary
+
+
+def reconstruction_warnings(report: Any, summaries: dict[str, dict[str, Any]]) -> None:
+    """Add the reconstructions' warnings (their logs' ``warnings``) to `report`, if any."""
+    notices = [f"{name}: {w}" for name, s in summaries.items() for w in s.get("warnings", [])]
+    if notices:
+        report.bullets(notices)
 
 
 def _evaluate(
@@ -548,6 +556,7 @@ def _write_report(report, rigs, rig_file, shape, times, captures, models, recons
             for name, s in ((n, r["summary"]) for n, r in recons.items())
         ],
     )  # fmt: skip
+    reconstruction_warnings(report, {n: r["summary"] for n, r in recons.items()})
     report.figures(
         [(f"reconstruction/{r['slug']}/preview.png", f"{n}: sRGB") for n, r in recons.items()],
         width_px=340,

@@ -36,7 +36,14 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from labkit.demo import Stages, method_figures, reconstruct_and_save, save_models, stage_table
+from labkit.demo import (
+    Stages,
+    method_figures,
+    reconstruct_and_save,
+    reconstruction_warnings,
+    save_models,
+    stage_table,
+)
 from labkit.errors import DataError
 from labkit.io import spectral_preview, write_png, write_text_atomic
 from labkit.io.tiff import json_default
@@ -190,13 +197,18 @@ class RealInputs:
     def reference_truth(self) -> np.ndarray:
         """The multispectral image (rows, cols, bands) warped onto the spectral dispersion
         model's reference geometry, where a reconstruction's bands lie: the per-pixel
-        spectral truth of the synthetic raw image (bilinear resampling)."""
+        spectral truth of the synthetic raw image (bilinear resampling; each band with the
+        dispersion of its filter's light, the model clamped to its domain, as the
+        reconstruction does)."""
         from calibration.warp import correct_spectral
+        from reconstruction.options import filter_light
 
         cube = self.synthesis.multispectral
-        return correct_spectral(
-            np.asarray(cube.cube, dtype=np.float64), cube.wavelengths_nm, self.models["spectral"]
-        )
+        model = self.models["spectral"].within_domain()
+        # each band's light, where the reconstruction evaluates its dispersion too
+        light = filter_light(cube.wavelengths_nm, model)
+        waves = cube.wavelengths_nm if light is None else light
+        return correct_spectral(np.asarray(cube.cube, dtype=np.float64), waves, model)
 
     def pixel_errors(self, result: Any) -> dict[str, float]:
         """A reconstruction's spectral RMSE per pixel against :attr:`reference_truth`: over
@@ -471,7 +483,6 @@ def _reconstruct(real: RealInputs, out: Path, disable: bool | None) -> dict[str,
             **options,
         )
         summary["options"] = options
-        summary["warnings"] = list(result.log.get("warnings", []))
         results[name] = {"result": result, "folder": folder, "summary": summary}
     return results
 
@@ -716,6 +727,7 @@ def _write_report(report, results, hdr, sensor, models, recons, evaluation) -> N
             for name, s in results["reconstruction"].items()
         ],
     )  # fmt: skip
+    reconstruction_warnings(report, results["reconstruction"])
     report.figures(
         [(f"reconstruction/{r['folder'].name}/preview.png", f"{n}: sRGB")
          for n, r in recons.items()],

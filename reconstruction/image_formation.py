@@ -82,6 +82,11 @@ class LatentSpace:
     support_nm : (float, float) or None
         Where the camera is sensitive (≥ 5 % of a channel's peak), nm: the range over
         which dispersion is sampled.
+    band_light_nm : ndarray (n,) or None
+        Discrete spaces: the wavelength of the light each band holds, where its dispersion
+        is evaluated — its centre, unless the bands are filters whose effective
+        wavelengths a dispersion model recorded (:meth:`with_band_light`). None: the
+        centres.
     """
 
     kind: Literal["spectral", "colour"]
@@ -90,6 +95,7 @@ class LatentSpace:
     kernel: str = "gaussian"
     scale: np.ndarray = field(default_factory=lambda: np.ones(3))
     support_nm: tuple[float, float] | None = None
+    band_light_nm: np.ndarray | None = None
 
     @classmethod
     def spectral(
@@ -138,6 +144,24 @@ class LatentSpace:
         if scale.shape != (self.channels,) or not np.all(np.isfinite(scale)) or np.any(scale <= 0):
             raise DataError(f"scale must be {self.channels} positive finite values, got {scale!r}")
         return replace(self, scale=scale)
+
+    @property
+    def phi_nm(self) -> np.ndarray | None:
+        """Wavelengths at which each band's dispersion is evaluated, nm (discrete spaces:
+        :attr:`band_light_nm` or the centres; spectral: the centres; colour: None)."""
+        if self.band_light_nm is not None:
+            return self.band_light_nm
+        return self.centres_nm
+
+    def with_band_light(self, light_nm: np.ndarray) -> LatentSpace:
+        """The same discrete space with its bands' light at `light_nm` (n,), nm."""
+        if self.kernel != DISCRETE:
+            raise DataError("only a discrete (sensor-map) space has bands of filtered light")
+        light = np.asarray(light_nm, dtype=np.float64)
+        if light.shape != self.centres_nm.shape or not np.all(np.isfinite(light)):
+            raise DataError(f"need {self.centres_nm.size} finite wavelengths, got {light!r}")
+        support = (float(light.min()), float(light.max()))
+        return replace(self, band_light_nm=light, support_nm=support)
 
     def colour_matrix(self) -> np.ndarray:
         """Ω·B (3 × n): latent image → raw colour without dispersion (scale included)."""
@@ -527,8 +551,9 @@ def build_formation(
         )
     if latent.kernel == DISCRETE:
         samples = latent.centres_nm
+        phi_nm = latent.phi_nm
     else:
-        samples = dispersion_samples(
+        samples = phi_nm = dispersion_samples(
             model,
             latent.support_nm,
             origin=origin,
@@ -539,7 +564,7 @@ def build_formation(
         )
     phi = Dispersion(
         model,
-        samples,
+        phi_nm,
         origin=origin,
         shape=shape,
         overhang_px=overhang_px,

@@ -22,11 +22,12 @@ from typing import Any
 import numpy as np
 
 from calibration.dispersion_model import DispersionModel, load_dispersion_model
+from calibration.model_domain import EXTRAPOLATIONS, DomainUse, domain_use
 from labkit.cfa import check_layout
 from labkit.errors import ConfigError, DataError
 from labkit.spectra import Spectra
 from reconstruction.band_balance import BAND_BALANCE
-from reconstruction.image_formation import LatentSpace
+from reconstruction.image_formation import DISCRETE, LatentSpace
 from reconstruction.operators.basis import KERNELS
 from reconstruction.operators.dispersion import INTERPOLATIONS
 from reconstruction.prior_terms import PRIORS, PriorTerm, prior_terms
@@ -127,6 +128,12 @@ class ReconstructOptions:
         solve without Φ (sparser, faster, immune to model errors), then warp every latent
         channel onto the reference geometry (bilinear; spectral channels at their band
         centres); the model may then have either direction.
+    extrapolation : {"clamp", "refuse", "allow"}
+        Where Φ's model would be evaluated outside the domain it was calibrated on
+        (wavelengths beyond its bands, pixels farther than one keypoint spacing from its
+        keypoints; :mod:`calibration.model_domain`): move those inputs to the domain's edge
+        (default), stop with an error, or evaluate the fitted function there. Any of them
+        is reported in the log's ``warnings`` and ``dispersion.domain``.
     interpolation : {"cubic", "bilinear"}
         Sampling weights of Φ (``correction="model"``): Keys' cubic convolution (default,
         beyond the thesis), which shifts without bilinear's blur and so without the
@@ -227,6 +234,7 @@ class ReconstructOptions:
     bands: Sequence[float] | None = None
     dispersion: DispersionModel | str | Path | None = None
     correction: str = "model"
+    extrapolation: str = "clamp"
     interpolation: str = "cubic"
     prior: str = "EdgeL2"
     nonneg: bool = True
@@ -254,6 +262,7 @@ class ReconstructOptions:
         object.__setattr__(self, "cfa", layout)
         _choice("latent", self.latent, LATENTS)
         _choice("correction", self.correction, CORRECTIONS)
+        _choice("extrapolation", self.extrapolation, EXTRAPOLATIONS)
         _choice("interpolation", self.interpolation, INTERPOLATIONS)
         _choice("kernel", self.kernel, KERNELS)
         if self.reference is not None:
@@ -378,17 +387,44 @@ class ReconstructOptions:
                 "response", "spectral reconstruction needs the camera response ({option})"
             )
         try:
-            return LatentSpace.spectral(self.response, self.bands, kernel=self.kernel)
+            space = LatentSpace.spectral(self.response, self.bands, kernel=self.kernel)
         except DataError as error:
             option = "bands" if self.bands is not None else "response"
             raise OptionError(option, f"{{option}}: {error}") from None
+        light = filter_light(space.centres_nm, self.model) if space.kernel == DISCRETE else None
+        return space if light is None else space.with_band_light(light)
 
     @cached_property
     def model(self) -> DispersionModel | None:
-        """The dispersion model (loaded when `dispersion` is a path)."""
-        if self.dispersion is None or isinstance(self.dispersion, DispersionModel):
-            return self.dispersion
-        return load_dispersion_model(self.dispersion)
+        """The dispersion model (loaded when `dispersion` is a path), clamped to its
+        calibrated domain unless `extrapolation` is ``"allow"``."""
+        if self.dispersion is None:
+            return None
+        model = self.dispersion
+        if not isinstance(model, DispersionModel):
+            model = load_dispersion_model(model)
+        return model.within_domain(self.extrapolation != "allow")
+
+    def domain_use(self, shape: tuple[int, int]) -> DomainUse | None:
+        """How far the model's use on a `shape` image reaches beyond its domain (None
+        without a model); raises for ``extrapolation="refuse"`` when it does."""
+        model = self.model
+        if model is None:
+            return None
+        space = self.space
+        if space.kind == "colour":
+            waves = None
+        elif space.kernel == DISCRETE or self.correction == "warp":
+            waves = space.phi_nm
+        else:
+            waves = space.support_nm  # the ends of the range Φ is sampled over
+        return domain_use(
+            model,
+            shape=shape,
+            wavelengths_nm=waves,
+            policy=self.extrapolation,
+            fix="{extrapolation} clamp (the default)",
+        )
 
     @property
     def solve_model(self) -> DispersionModel | None:
@@ -475,6 +511,10 @@ class ReconstructOptions:
         check_dispersion_model(
             self.model, shape, self.latent, where=where, correction=self.correction
         )
+        try:
+            self.domain_use(shape)
+        except DataError as error:
+            raise OptionError("extrapolation", f"{where}: {error}") from None
 
     def as_dict(self) -> dict[str, Any]:
         """The options as given (the response and dispersion model by name), JSON-ready."""
@@ -491,6 +531,38 @@ class ReconstructOptions:
                 value = list(value)
             out[f.name] = value
         return out
+
+
+def filter_light(centres_nm: np.ndarray, model: DispersionModel | None) -> np.ndarray | None:
+    """The effective wavelength of the filter behind each band, from `model`'s record of its
+    calibration (``provenance.bands_table``: each filter's nominal and effective wavelength),
+    or None when the model records none of these bands.
+
+    A response tabulated per filter (a sensor map, thesis Algorithm 12) names its bands by
+    the filters' nominal wavelengths, but the light each band holds — and so its dispersion
+    — sits at the filter's effective wavelength (filter × light × camera; e.g. 686.6 nm
+    for a "700 nm" filter). Bands the table does not name keep their centre.
+    """
+    if model is None or model.variables != "xylambda":
+        return None
+    table = model.provenance.get("bands_table") or []
+    effective = {}
+    for row in table:
+        if not isinstance(row, Mapping):
+            continue
+        nominal, light = row.get("nominal_nm"), row.get("wavelength_nm")
+        if isinstance(nominal, (int, float)) and isinstance(light, (int, float)):
+            if math.isfinite(nominal) and math.isfinite(light):
+                effective[float(nominal)] = float(light)
+    light_nm = np.array(
+        [
+            next((light for nominal, light in effective.items() if abs(nominal - c) <= 0.5), c)
+            for c in np.asarray(centres_nm, dtype=np.float64)
+        ]
+    )
+    if np.allclose(light_nm, centres_nm):
+        return None
+    return light_nm
 
 
 def check_dispersion_model(

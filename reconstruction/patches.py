@@ -49,7 +49,7 @@ import numpy as np
 from calibration.dispersion_model import DispersionModel
 from labkit.blas_threads import fixed_blas_threads
 from labkit.errors import ConfigError, DataError
-from reconstruction.image_formation import LatentSpace, build_formation
+from reconstruction.image_formation import DISCRETE, LatentSpace, build_formation
 from reconstruction.prior_terms import PriorTerm
 from reconstruction.problem import Problem
 from reconstruction.solvers.admm import solve
@@ -191,7 +191,7 @@ def max_dispersion(
     xs = origin[1] + np.linspace(0, shape[1] - 1, 5)
     gx, gy = np.meshgrid(xs, ys)
     if model.variables == "xylambda":
-        waves = np.linspace(*latent.support_nm, 7)
+        waves = latent.phi_nm if latent.kernel == DISCRETE else np.linspace(*latent.support_nm, 7)
         ex, ey = model.displacement(gx[..., None], gy[..., None], waves[None, None, :])
         return float(np.sqrt(np.max(ex * ex + ey * ey)))
     longest = 0.0

@@ -61,6 +61,11 @@ REFERENCE_SMOOTHING = 1e-2
 """Weight w of (6.1)'s spectral-gradient penalty, relative to ‖C‖² (normalised units)."""
 
 
+class DomainWarning(UserWarning):
+    """The dispersion model is used outside the domain it was calibrated on (clamped, or
+    extrapolated with ``extrapolation="allow"``); the log's ``dispersion.domain`` says where."""
+
+
 class NarrowBandWarning(UserWarning):
     """The image's light looks narrow-band while a spectral smoothness term was asked for
     (left to the default, σ is 0 for such images instead)."""
@@ -278,6 +283,7 @@ def prepare_problem(
         raise DataError("weights='auto:msec' needs the true spectral image (truth=...)")
     o.check_image(raw.shape)
     space = o.space
+    domain = o.domain_use(raw.shape)
     model, solve_model = o.model, o.solve_model
     reach = 0.0 if solve_model is None else max_dispersion(model, space, (0, 0), raw.shape)
     pad_px = o.pad_px
@@ -328,6 +334,9 @@ def prepare_problem(
                 "(--spectral-smoothness 0) for the thesis' problem, or leave it to the default"
             )
             warnings.warn(notices[-1], NarrowBandWarning, stacklevel=4)
+    if domain is not None and domain.outside:
+        notices.append(domain.message())
+        warnings.warn(notices[-1], DomainWarning, stacklevel=4)
     terms = o.terms
     factors = None
     if o.balance > 0:
@@ -361,6 +370,15 @@ def prepare_problem(
             "direction": model.direction,
             "correction": o.correction,
             "interpolation": o.interpolation if solve_model is not None else None,
+            "domain": domain.to_dict(),
+            "band_light_nm": None
+            if space.band_light_nm is None
+            else {
+                "values": [float(v) for v in space.band_light_nm],
+                "source": "the filters' effective wavelengths recorded by the model "
+                "(provenance.bands_table): Φ of each band is evaluated there, not at its "
+                "nominal centre",
+            },
             "provenance": model.to_dict().get("provenance", {}),
         },
     }
@@ -538,11 +556,12 @@ def warp_latent(latent_image: np.ndarray, space: LatentSpace, model: DispersionM
     """Warp a latent image estimated without Φ onto the reference geometry (§3.9.2).
 
     Spectral channels (basis coefficients) are resampled with the dispersion at their band
-    centres; colour channels R and B onto G. Bilinear, so non-negativity is kept.
+    centres (or the light of their filters, :attr:`LatentSpace.phi_nm`); colour channels R
+    and B onto G. Bilinear, so non-negativity is kept.
     """
     if space.kind == "colour":
         return correct_channels(latent_image, model)
-    return correct_spectral(latent_image, space.centres_nm, model)
+    return correct_spectral(latent_image, space.phi_nm, model)
 
 
 def _spectral_matrix(space: LatentSpace) -> np.ndarray:

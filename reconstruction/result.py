@@ -187,4 +187,6 @@ def recorded_options(result: Reconstruction) -> dict[str, Any]:
         "reference": log.get("reference"),
         "correction": dispersion.get("correction"),
         "interpolation": dispersion.get("interpolation"),
+        "extrapolation": (dispersion.get("domain") or {}).get("policy"),
+        "warnings": list(log.get("warnings") or []),
     }

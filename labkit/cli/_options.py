@@ -67,3 +67,21 @@ def fraction(text: str) -> float:
             + (f" (for {value:g} % give {value / 100:g})" if 1 < value <= 100 else "")
         )
     return value
+
+
+#: The choices of ``--extrapolation`` (:data:`calibration.model_domain.EXTRAPOLATIONS`,
+#: repeated here so that building a parser imports no numerical code).
+EXTRAPOLATION_CHOICES = ("clamp", "refuse", "allow")
+
+
+def add_extrapolation_option(parser: argparse.ArgumentParser, *, model: str = "the model") -> None:
+    """``--extrapolation``: what a dispersion model does outside its calibrated domain."""
+    parser.add_argument(
+        "--extrapolation",
+        default="clamp",
+        choices=EXTRAPOLATION_CHOICES,
+        help=f"where {model} would be used outside the domain it was calibrated on "
+        "(wavelengths beyond its bands, pixels farther than one keypoint spacing from its "
+        "keypoints): clamp to the domain's edge (default), refuse, or allow the fitted "
+        "function there; the output says which bands and how much of the image",
+    )

@@ -11,7 +11,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from labkit.cli._options import add_cfa_option
+from labkit.cli._options import add_cfa_option, add_extrapolation_option
 
 
 def register(commands: argparse._SubParsersAction) -> None:
@@ -47,6 +47,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     warp.add_argument(
         "--order", type=int, choices=[0, 1, 3], default=1, help="interpolation order (default 1)"
     )
+    add_extrapolation_option(warp)
     warp.set_defaults(handler=_warp)
 
 
@@ -72,8 +73,8 @@ def _warp(args: argparse.Namespace) -> int:
     check_output_files([args.out, args.out.with_suffix(".png")], inputs=[args.image, args.model])
     if args.image.is_file():
         verify_output_file(args.image, what="image")
-    model = load_dispersion_model(args.model)
-    provenance = {"input": str(args.image), "dispersion_model": str(args.model)}
+    model = load_dispersion_model(args.model).within_domain(args.extrapolation != "allow")
+    provenance: dict[str, Any] = {"input": str(args.image), "dispersion_model": str(args.model)}
     try:
         raw = read_mosaic(args.image, cfa=args.cfa)
     except DataError:  # a spectral EXR, or the mosaic's error stands
@@ -88,6 +89,7 @@ def _warp(args: argparse.Namespace) -> int:
                 f"colour-channel model (`labkit calibrate dispersion --reference G`), but "
                 f"{args.model} is a spectral model"
             )
+        _domain(model, args, raw.raw.shape, None, provenance)
         rgb = demosaic_bilinear(raw.raw, raw.cfa).astype("float32")
         corrected = correct_channels(rgb, model, order=args.order)
         preview = args.out.with_suffix(".png")
@@ -106,15 +108,7 @@ def _warp(args: argparse.Namespace) -> int:
             f"(`labkit calibrate dispersion --reference 600`), but {args.model} is a "
             "colour-channel model"
         )
-    span = model.region.wavelength_nm
-    if span is not None:
-        outside = [w for w in spectral.wavelengths_nm if not span[0] - 0.5 <= w <= span[1] + 0.5]
-        if outside:
-            print(
-                f"warning: bands {', '.join(f'{w:g}' for w in outside)} nm lie outside the "
-                f"calibrated range {span[0]:.1f}–{span[1]:.1f} nm; their correction is "
-                "extrapolated"
-            )
+    _domain(model, args, spectral.cube.shape[:2], spectral.wavelengths_nm, provenance)
     cube = correct_spectral(spectral.cube, spectral.wavelengths_nm, model, order=args.order)
     with staged_output_files([args.out], command="labkit correct warp") as staged:
         write_spectral_exr(
@@ -123,6 +117,25 @@ def _warp(args: argparse.Namespace) -> int:
         )
     print(f"warped {cube.shape[2]} bands with {args.model}; wrote {args.out}")
     return 0
+
+
+def _domain(model: Any, args: argparse.Namespace, shape, wavelengths, provenance: dict) -> None:
+    """Check the model's use against its calibrated domain (refusing, with
+    --extrapolation refuse), print what lies outside, and record it in `provenance`."""
+    from calibration.model_domain import domain_use
+
+    use = domain_use(
+        model,
+        shape=shape,
+        wavelengths_nm=wavelengths,
+        policy=args.extrapolation,
+        fix="--extrapolation clamp (the default)",
+    )
+    provenance["dispersion_domain"] = use.to_dict()
+    message = use.message(what=str(args.model))
+    if message:
+        provenance["warnings"] = [message]
+        print(f"warning: {message}")
 
 
 def _spectral_or_none(path: Path) -> Any:

@@ -1,11 +1,13 @@
-"""``labkit dispersion eval MODEL.yaml --x … --y … --wavelength …``: query a model."""
+"""``labkit dispersion show MODEL.yaml`` and ``labkit dispersion eval MODEL.yaml --x … --y …``:
+inspect a dispersion model — what it is, the domain it was calibrated on, and its
+displacement at given points."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
-from labkit.cli._options import finite_float
+from labkit.cli._options import add_extrapolation_option, finite_float
 
 
 def register(commands: argparse._SubParsersAction) -> None:
@@ -16,13 +18,25 @@ def register(commands: argparse._SubParsersAction) -> None:
         description="Inspect dispersion models written by `labkit calibrate dispersion`.",
     )
     actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
+    show = actions.add_parser(
+        "show",
+        help="print what a model is and the domain it was calibrated on",
+        description="Print a model's kind, direction, reference and image size, the domain "
+        "it was calibrated on (wavelength range, the keypoints' hull and spacing, how much "
+        "of the image lies beyond them), how each filter band entered the calibration, and "
+        "the model selection (degrees or smoothing, cross-validation error).",
+    )
+    show.add_argument("model", type=Path, help="dispersion model YAML")
+    show.set_defaults(handler=_show)
     evaluate = actions.add_parser(
         "eval",
         help="print the displacement (dx, dy) at given positions and wavelengths",
         description="Evaluate a model: values of --x, --y and --wavelength (or --channel) "
         "are broadcast against each other (give one value or the same number of values for "
         "each). Prints x, y, band, dx, dy in px and whether the point lies inside the "
-        "calibrated region (the keypoints' convex hull and wavelength range).",
+        "calibrated domain (the wavelength range, and the keypoints' convex hull widened by "
+        "one keypoint spacing); outside it the point is clamped to the domain's edge unless "
+        "--extrapolation says otherwise.",
     )
     evaluate.add_argument("model", type=Path, help="dispersion model YAML")
     evaluate.add_argument("--x", type=finite_float, nargs="+", required=True, help="column(s), px")
@@ -35,6 +49,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="wavelength(s), nm (spectral)",
     )
     evaluate.add_argument("--channel", default=None, help="R or B (colour-channel models)")
+    add_extrapolation_option(evaluate)
     evaluate.set_defaults(handler=_eval)
 
 
@@ -44,31 +59,112 @@ def _eval(args: argparse.Namespace) -> int:
     from calibration.dispersion_model import load_dispersion_model
     from labkit.errors import DataError
 
-    model = load_dispersion_model(args.model)
+    loaded = load_dispersion_model(args.model)
+    model = loaded.within_domain(args.extrapolation != "allow")
+    region = model.region
     try:
         x, y = np.broadcast_arrays(np.array(args.x), np.array(args.y))
         if model.variables == "xylambda":
             if args.wavelength is None:
                 raise DataError(f"{args.model} is a spectral model; give --wavelength")
             x, y, band = np.broadcast_arrays(x, y, np.array(args.wavelength))
-            dx, dy = model.displacement(x, y, band)
-            inside = model.region.contains(x, y, band)
             labels = [f"{b:g} nm" for b in band]
+            waves = band
         else:
             if args.channel is None:
                 raise DataError(
                     f"{args.model} is a colour-channel model; give --channel "
                     f"({', '.join(model.channels)})"
                 )
-            dx, dy = model.displacement(x, y, channel=args.channel)
-            inside = model.region.contains(x, y)
             labels = [args.channel] * x.size
+            waves = None
     except ValueError:
         raise DataError(
             "--x, --y and --wavelength need one value or the same number of values each"
         ) from None
+    cx, cy, cw = region.clamp(x, y, waves)
+    moved = (cx != x) | (cy != y)
+    if cw is not None:
+        moved |= cw != waves
+    if args.extrapolation == "refuse" and moved.any():
+        first = int(np.argmax(moved))
+        raise DataError(
+            f"({x[first]:g}, {y[first]:g}, {labels[first]}) lies outside the domain "
+            f"{args.model} was calibrated on ({_domain_text(region)}); give "
+            "--extrapolation clamp or allow"
+        )
+    if model.variables == "xylambda":
+        dx, dy = model.displacement(x, y, waves)
+    else:
+        dx, dy = model.displacement(x, y, channel=args.channel)
+    state = "extrapolated" if args.extrapolation == "allow" else "clamped"
     print(f"# {model.type} model, {model.direction}, reference {model.reference}")
-    print(f"{'x':>9} {'y':>9} {'band':>10} {'dx':>9} {'dy':>9}  calibrated")
-    for xi, yi, label, a, b, ok in zip(x, y, labels, dx, dy, inside, strict=True):
-        print(f"{xi:>9.2f} {yi:>9.2f} {label:>10} {a:>9.4f} {b:>9.4f}  {'yes' if ok else 'no'}")
+    print(f"# calibrated domain: {_domain_text(region)}")
+    print(f"{'x':>9} {'y':>9} {'band':>10} {'dx':>9} {'dy':>9}  domain")
+    for i, label in enumerate(labels):
+        where = "inside"
+        if moved[i]:
+            where = state
+            if state == "clamped":
+                at = f"({cx[i]:.1f}, {cy[i]:.1f}" + ("" if cw is None else f", {cw[i]:.1f} nm")
+                where += f" to {at})"
+        print(f"{x[i]:>9.2f} {y[i]:>9.2f} {label:>10} {dx[i]:>9.4f} {dy[i]:>9.4f}  {where}")
     return 0
+
+
+def _domain_text(region) -> str:
+    """The calibrated domain in words: wavelength range, hull extent and margin."""
+    lo, hi = region.hull_xy.min(axis=0), region.hull_xy.max(axis=0)
+    text = f"keypoints over x {lo[0]:.0f}–{hi[0]:.0f}, y {lo[1]:.0f}–{hi[1]:.0f} px"
+    if region.spacing_px is not None:
+        text += f", trusted {region.margin_px:.0f} px beyond (one keypoint spacing)"
+    if region.wavelength_nm is not None:
+        text = f"{region.wavelength_nm[0]:.1f}–{region.wavelength_nm[1]:.1f} nm; " + text
+    return text
+
+
+def _show(args: argparse.Namespace) -> int:
+    from calibration.dispersion_model import load_dispersion_model
+    from calibration.model_domain import domain_use
+
+    model = load_dispersion_model(args.model)
+    kind = {"xylambda": "spectral (x, y, λ)", "xy": "colour-channel (x, y), R and B"}
+    rows, cols = model.image_shape
+    print(f"{args.model}")
+    print(f"  model        {model.type}, {kind.get(model.variables, model.variables)}")
+    reference = model.reference
+    if isinstance(reference, float):
+        reference = f"{reference:.1f} nm"
+    print(f"  direction    {model.direction}, reference {reference}")
+    print(f"  image        {cols}×{rows} px (width × height)")
+    print(f"  domain       {_domain_text(model.region)}")
+    use = domain_use(model, policy="allow")
+    print(
+        f"               {100 * use.area_outside:.1f} % of the image lies beyond it (up to "
+        f"{use.max_outside_px:.0f} px from the keypoints' hull); reconstruct, correct and "
+        "evaluate clamp there unless told otherwise (--extrapolation)"
+    )
+    table = model.provenance.get("bands_table") or []
+    if table:
+        print("  bands        filter   nominal  effective  purity  used")
+        for row in table:
+            used = "yes" if row.get("used") else f"no: {row.get('reason', '')}"
+            print(
+                f"               {row.get('illumination')!s:>6} "
+                f"{_number(row, 'nominal_nm', '>8.1f')} {_number(row, 'wavelength_nm', '>10.1f')} "
+                f"{_number(row, 'purity', '>7.2f')}  {used}"
+            )
+    selection = model.selection
+    chosen = {k: selection[k] for k in ("method", "degree_xy", "degree_lambda") if k in selection}
+    if chosen:
+        print("  selection    " + ", ".join(f"{k} {v}" for k, v in chosen.items()))
+    if "cv_min" in selection and isinstance(selection["cv_min"], dict):
+        error = selection["cv_min"].get("error")
+        if isinstance(error, (int, float)):
+            print(f"               cross-validated error {error:.3g} px² at its minimum")
+    return 0
+
+
+def _number(row: dict, key: str, spec: str) -> str:
+    value = row.get(key)
+    return format(value, spec) if isinstance(value, (int, float)) else "—"

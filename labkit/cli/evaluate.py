@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from labkit.cli._options import add_cfa_option
+from labkit.cli._options import add_cfa_option, add_extrapolation_option
 
 DESCRIPTION = """\
 Score colour images of one raw image (thesis §4.4, §4.6). RAW is a raw Bayer mosaic: a raw
@@ -76,6 +76,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         action="store_true",
         help="with --scene: compare with the simulator's dispersion-free raw-colour truth",
     )
+    add_extrapolation_option(parser, model="--colour-dispersion's model")
     parser.set_defaults(handler=_evaluate)
 
 
@@ -108,6 +109,18 @@ def _evaluate(args: argparse.Namespace) -> int:
                 "baselines: give a colour-channel model (`labkit calibrate dispersion HDR "
                 "--reference G`); a spectral model warps spectral images (`labkit correct warp`)"
             )
+        from calibration.model_domain import domain_use
+
+        model = model.within_domain(args.extrapolation != "allow")
+        domain = domain_use(
+            model,
+            shape=raw.raw.shape,
+            policy=args.extrapolation,
+            fix="--extrapolation clamp (the default)",
+        )
+        message = domain.message(what=f"--colour-dispersion {args.colour_dispersion}")
+        if message:
+            notes.append(f"warning: {message}")
     boxes = labels = truth = None
     if args.labels is not None:
         from labkit.io.plane import read_labels
@@ -177,7 +190,7 @@ def _write_evaluation(
         write_png(path, image)
         figures.append((path.name, name))
     report.figures(figures, width_px=320)
-    plain = {"raw": str(args.raw), **result.as_dict()}
+    plain = {"raw": str(args.raw), **result.as_dict(), "warnings": list(notes)}
     write_text_atomic(stage / "evaluation.json", json.dumps(plain, indent=1) + "\n")
     report.write(stage, "evaluation")
     return header, rows

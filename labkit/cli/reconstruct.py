@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from labkit.cli._options import add_cfa_option
+from labkit.cli._options import add_cfa_option, add_extrapolation_option
 from labkit.errors import ConfigError, DataError
 
 #: What ``--scheduler`` accepts besides ``tcp://host:port``.
@@ -34,6 +34,7 @@ CLI_NAMES = {
     "bands": "--bands",
     "dispersion": "--dispersion",
     "correction": "--correction",
+    "extrapolation": "--extrapolation",
     "interpolation": "--interpolation",
     "prior": "--prior",
     "nonneg": "--nonneg",
@@ -115,6 +116,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="model: Φ inside the problem (3.1) (default); warp: thesis §3.9.2, solve "
         "without Φ and warp the result onto the reference band (either model direction)",
     )
+    add_extrapolation_option(parser, model="the dispersion model")
     parser.add_argument(
         "--interpolation",
         default="cubic",
@@ -260,10 +262,11 @@ def _run(args: argparse.Namespace, job: _Job) -> int:
         print(f"choosing weights ({args.weights}, Algorithm 3)…", file=sys.stderr)
     try:
         from reconstruction import reconstruct
-        from reconstruction.reconstruct import NarrowBandWarning
+        from reconstruction.reconstruct import DomainWarning, NarrowBandWarning
 
-        with warnings.catch_warnings():  # the summary prints it from the log
+        with warnings.catch_warnings():  # the summary prints them from the log
             warnings.simplefilter("ignore", NarrowBandWarning)
+            warnings.simplefilter("ignore", DomainWarning)
             result = reconstruct(job.raw.raw, job.options, progress=bar.update)
     except OSError as error:
         from reconstruction.patches import REMOTE_SCHEMES
@@ -364,6 +367,7 @@ def _prepare(args: argparse.Namespace) -> _Job:
             bands=bands,
             dispersion=args.dispersion,
             correction=args.correction,
+            extrapolation=args.extrapolation,
             interpolation=args.interpolation,
             prior=args.prior,
             nonneg=args.nonneg,
@@ -595,6 +599,12 @@ def _print_summary(
             f"warning: {unconverged} patch(es) stopped at the iteration limit before reaching "
             "--rtol"
         )
+    light = (log.get("dispersion") or {}).get("band_light_nm")
+    if light:
+        pairs = ", ".join(
+            f"{b:g} → {w:.1f}" for b, w in zip(log["bands_nm"], light["values"], strict=True)
+        )
+        print(f"Φ at the filters' effective wavelengths (nm): {pairs}")
     if log.get("spectral_smoothness_chosen"):
         print(f"spectral smoothness: {log['spectral_smoothness_chosen']}")
     for notice in log["warnings"]:

@@ -102,8 +102,9 @@ class Dispersion(LinearOperator):
     edge value, "replicate" extension), so every output pixel is a convex combination of
     input pixels. Pixels near the patch border whose sample point leaves the patch are
     therefore approximations: give a patch a margin of at least :attr:`max_shift_px`
-    (rounded up) beyond the region whose output is used. The displacement is evaluated
-    wherever asked, including outside the model's calibrated region (extrapolation).
+    (rounded up) beyond the region whose output is used. Outside the model's calibrated
+    region the displacement follows the model's ``extrapolation`` (reconstruction clamps,
+    :mod:`calibration.model_domain`).
     """
 
     name = "Φ"
@@ -420,7 +421,9 @@ def dispersion_samples(
     Returns
     -------
     ndarray (n,) float64
-        n equally spaced wavelengths from λ_min to λ_max inclusive, nm.
+        n equally spaced wavelengths from λ_min to λ_max inclusive, nm; for a model
+        clamped to its domain (:meth:`~calibration.DispersionModel.within_domain`), from
+        λ_min to λ_max narrowed to the calibrated range.
 
     Notes
     -----
@@ -444,6 +447,13 @@ def dispersion_samples(
         raise DataError(f"min_count must be at least 1, got {min_count}")
     if not (np.isfinite(step_px) and step_px > 0):
         raise DataError(f"step_px must be positive, got {step_px}")
+    span = model.region.wavelength_nm
+    if model.extrapolation == "clamp" and span is not None:
+        # a clamped model is constant beyond its range, as the samples' hats are: sampling
+        # inside the range only loses nothing
+        inner = (max(lo, span[0]), min(hi, span[1]))
+        if inner[0] < inner[1]:
+            lo, hi = inner
     row0, col0, rows, cols = _patch(model, origin, shape, overhang_px)
     # quadrant centres of the patch's pixel area [−0.5, n − 0.5], full-image px
     qx = col0 - 0.5 + cols * np.array([0.25, 0.75, 0.25, 0.75])

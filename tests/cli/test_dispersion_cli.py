@@ -56,10 +56,37 @@ def test_calibrate_dispersion_eval_and_warp(hdr_folder, tmp_path: Path, capsys):
     # `labkit dispersion eval` prints what the Python API returns
     assert main(["dispersion", "eval", str(out), "--x", "20", "230", "--y", "30",
                  "--wavelength", "450"]) == 0  # fmt: skip
-    rows = [line.split() for line in capsys.readouterr().out.splitlines()[2:]]
-    dx, dy = model.displacement(np.array([20.0, 230.0]), 30.0, 450.0)
+    printed = capsys.readouterr().out.splitlines()
+    assert printed[1].startswith("# calibrated domain: 4")  # the bands' range, nm
+    rows = [line.split() for line in printed[3:]]
+    dx, dy = model.within_domain().displacement(np.array([20.0, 230.0]), 30.0, 450.0)
     assert [float(r[4]) for r in rows] == pytest.approx(dx, abs=1e-4)
     assert [float(r[5]) for r in rows] == pytest.approx(dy, abs=1e-4)
+
+    # beyond the calibrated bands: clamped to the range's end, and said so
+    lo, hi = model.region.wavelength_nm
+    assert main(["dispersion", "eval", str(out), "--x", "128", "--y", "96",
+                 "--wavelength", "380"]) == 0  # fmt: skip
+    row = capsys.readouterr().out.splitlines()[3]
+    assert f"clamped to (128.0, 96.0, {lo:.1f} nm)" in row
+    edge = [float(v) for v in model.displacement(128.0, 96.0, lo)]
+    assert [float(v) for v in row.split()[4:6]] == pytest.approx(edge, abs=1e-4)
+    assert main(["dispersion", "eval", str(out), "--x", "128", "--y", "96",
+                 "--wavelength", "380", "--extrapolation", "allow"]) == 0  # fmt: skip
+    row = capsys.readouterr().out.splitlines()[3]
+    assert row.endswith("extrapolated")
+    fitted = [float(v) for v in model.displacement(128.0, 96.0, 380.0)]
+    assert [float(v) for v in row.split()[4:6]] == pytest.approx(fitted, abs=1e-4)
+    assert main(["dispersion", "eval", str(out), "--x", "128", "--y", "96",
+                 "--wavelength", "380", "--extrapolation", "refuse"]) == 2  # fmt: skip
+    assert "lies outside the domain" in capsys.readouterr().err
+
+    # `labkit dispersion show` prints the domain and how each filter entered it
+    assert main(["dispersion", "show", str(out)]) == 0
+    shown = capsys.readouterr().out
+    assert f"domain       {lo:.1f}–{hi:.1f} nm; keypoints over x" in shown
+    assert "one keypoint spacing" in shown and "% of the image lies beyond it" in shown
+    assert "   400 " in shown and "no: " in shown and "degree_lambda" in shown
 
     # warping a multispectral image of the disks aligns its bands with the reference
     bands = {b: read_band(hdr, b) for b in ("450", "600")}
@@ -70,11 +97,22 @@ def test_calibrate_dispersion_eval_and_warp(hdr_folder, tmp_path: Path, capsys):
     corrected = tmp_path / "corrected.exr"
     assert main(["correct", "warp", str(spectral), "--model", str(out), "--out",
                  str(corrected)]) == 0  # fmt: skip
+    assert "nm (calibrated" not in capsys.readouterr().out  # every band inside the range
     warped = read_spectral_exr(corrected).cube
     before = _misalignment(cube[..., 0], cube[..., 1])
     after = _misalignment(warped[..., 0], warped[..., 1])
     # 0.05 px of the remainder is Bayer aliasing of the 32-px disk lattice
     assert before > 0.5 and after < 0.08, (before, after)
+
+    # a band beyond the calibrated range is clamped, and the output says so
+    wide = tmp_path / "wide.exr"
+    write_spectral_exr(wide, SpectralImage(cube, np.array([380.0, wavelengths[1]]), {}))
+    assert main(["correct", "warp", str(wide), "--model", str(out), "--out",
+                 str(tmp_path / "wide-corrected.exr")]) == 0  # fmt: skip
+    assert "380.0 → " in capsys.readouterr().out
+    header = read_spectral_exr(tmp_path / "wide-corrected.exr").labkit
+    assert header["dispersion_domain"]["outside_nm"] == [380.0]
+    assert "outside the domain" in header["warnings"][0]
 
 
 def read_band(hdr: Path, name: str) -> np.ndarray:

@@ -144,6 +144,37 @@ def test_flat_grey_with_rig_and_dispersion(
     assert "away from that of any smooth" in log["spectral_smoothness_chosen"]
 
 
+def test_a_model_lacking_bands_is_clamped_and_the_outputs_say_so(
+    inputs, tmp_path: Path, capsys
+) -> None:
+    """The model was calibrated over 450–650 nm; the camera sees 400–700 nm. Φ is clamped to
+    the model's range, and the summary, log.json and the EXR header say so; with
+    --extrapolation refuse the command stops before any work and writes nothing."""
+    out = tmp_path / "out"
+    args = ["reconstruct", str(inputs["smooth"]), "--response", str(inputs["response"]),
+            "--bands", BANDS, "--dispersion", str(inputs["model"]), "--weights", "fixed:0.01",
+            "--patch-px", "32", "--quiet", "--out", str(out)]  # fmt: skip
+    assert main(args) == 0
+    printed = capsys.readouterr().out
+    warning = next(line for line in printed.splitlines() if "outside the domain" in line)
+    assert warning.startswith("warning: the dispersion model is used outside the domain")
+    assert "(clamped)" in warning and "→ 450.0" in warning and "→ 650.0" in warning
+    log = json.loads((out / "log.json").read_text())
+    domain = log["dispersion"]["domain"]
+    assert domain["policy"] == "clamp" and domain["calibrated_nm"] == [450.0, 650.0]
+    assert domain["outside_nm"][0] < 450 and domain["outside_nm"][-1] > 650
+    assert any("outside the domain" in w for w in log["warnings"])
+    header = read_spectral_exr(out / "spectral.exr").labkit
+    assert header["extrapolation"] == "clamp"
+    assert any("outside the domain" in w for w in header["warnings"])
+
+    refused = tmp_path / "refused"
+    assert main([*args[:-1], str(refused), "--extrapolation", "refuse"]) == 2
+    error = capsys.readouterr().err
+    assert "--dispersion" in error and "--extrapolation" in error and "nm" in error
+    assert not refused.exists()
+
+
 def test_narrow_band_light_gets_the_thesis_problem(
     sim_rig_path: Path, tmp_path: Path, capsys
 ) -> None:
@@ -294,7 +325,8 @@ def test_help_documents_every_option(capsys) -> None:
     for option in ("--rig", "--response", "--bands", "--dispersion", "--prior", "--nonneg",
                    "--no-nonneg", "--weights", "--latent", "--reference", "--rtol", "--patch-px",
                    "--pad-px", "--scheduler", "--out", "--quiet", "--correction",
-                   "--exact", "--spectral-smoothness", "--band-balance"):  # fmt: skip
+                   "--exact", "--spectral-smoothness", "--band-balance",
+                   "--extrapolation"):  # fmt: skip
         assert option in text
     for prior in PRIORS:
         assert prior in text, f"prior {prior} is missing from the --prior help"

@@ -17,7 +17,7 @@ from labkit.errors import DataError
 from labkit.spectra import camera_response
 from reconstruction.image_formation import LatentSpace, build_formation
 from reconstruction.problem import SUGGESTED_SMOOTHNESS
-from reconstruction.reconstruct import NarrowBandWarning, reconstruct
+from reconstruction.reconstruct import DomainWarning, NarrowBandWarning, reconstruct
 
 RESPONSE_RGB = camera_response(RESPONSE)
 SHAPE = (40, 60)
@@ -386,3 +386,48 @@ def test_local_cluster_of_two_processes_equals_the_local_scheduler() -> None:
     assert [r["iterations"] for r in remote.log["patch_records"]] == [
         r["iterations"] for r in local.log["patch_records"]
     ]
+
+
+def test_sensor_map_bands_take_their_filters_light() -> None:
+    """A response tabulated per filter (a sensor map at 400…700 nm) with a model that
+    recorded the filters' effective wavelengths: Φ of the "700 nm" band is evaluated at
+    686.6 nm, and of the "400 nm" band at 450 nm (the model's range starts there); the log
+    says both."""
+    from dataclasses import replace
+
+    from labkit.spectra import Spectra
+    from reconstruction.image_formation import DISCRETE
+    from reconstruction.options import ReconstructOptions, filter_light
+
+    bands = np.arange(400.0, 701.0, 50.0)
+    ratios = np.column_stack([np.linspace(0.1, 2.0, 7), np.ones(7), np.linspace(3.0, 0.05, 7)])
+    sensor_map = Spectra(bands, ratios, ("R", "G", "B"))
+    model = replace(
+        spectral_model(ConstantField((1.0, 0.0), per_nm=True), shape=(64, 64)),
+        provenance={
+            "bands_table": [
+                {"illumination": "450", "nominal_nm": 450.0, "wavelength_nm": 451.0},
+                {"illumination": "700", "nominal_nm": 700.0, "wavelength_nm": 686.6},
+                {"illumination": "odd", "nominal_nm": None, "wavelength_nm": 500.0},
+            ]
+        },
+    )
+    model = replace(model, region=replace(model.region, wavelength_nm=(450.0, 690.0)))
+    light = filter_light(bands, model)
+    np.testing.assert_allclose(light, [400, 451, 500, 550, 600, 650, 686.6])
+    assert filter_light(bands, replace(model, provenance={})) is None
+
+    options = ReconstructOptions(
+        cfa="GBRG", response=sensor_map, bands=bands, dispersion=model, weights="fixed:0.01",
+        patch_px=32, pad_px=8, flat_threshold=None, spectral_smoothness=0.0,
+    )  # fmt: skip
+    assert options.space.kernel == DISCRETE
+    np.testing.assert_allclose(options.space.phi_nm, light)
+    rng = np.random.default_rng(4)
+    raw = 0.5 + 0.1 * rng.random((64, 64))
+    with pytest.warns(DomainWarning, match=r"400.0 → 450.0 nm"):
+        result = reconstruct(raw, options)
+    log = result.log
+    assert log["dispersion"]["band_light_nm"]["values"] == pytest.approx(light)
+    assert log["dispersion"]["domain"]["outside_nm"] == [400.0]
+    assert "400.0 → 450.0 nm (calibrated 450.0–690.0 nm" in log["warnings"][0]
