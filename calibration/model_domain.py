@@ -21,16 +21,13 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Literal
+from typing import Any, Literal
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from calibration._model_files import float_array
 from labkit.errors import ConfigError, DataError
-
-if TYPE_CHECKING:
-    from calibration.dispersion_model import DispersionModel
 
 #: What a use of a model does outside its domain: move inputs to its edge, stop with an
 #: error, or evaluate the fitted function there all the same (said in the output).
@@ -314,7 +311,7 @@ class DomainUse:
 
 
 def domain_use(
-    model: DispersionModel,
+    model: Any,
     *,
     shape: tuple[int, int] | None = None,
     wavelengths_nm: Sequence[float] | np.ndarray | None = None,
@@ -325,7 +322,8 @@ def domain_use(
 
     Parameters
     ----------
-    model : DispersionModel
+    model : calibration.DispersionModel
+        (typed ``Any`` here: the model module imports this one)
     shape : (rows, cols), optional
         Image evaluated, px (default: the model's image).
     wavelengths_nm : sequence of float, optional
