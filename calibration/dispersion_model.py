@@ -30,7 +30,7 @@ import numpy as np
 import yaml
 
 from calibration._model_files import read_model_document
-from calibration.model_domain import CalibratedRegion
+from calibration.model_domain import CalibratedRegion, check_extrapolation
 from calibration.polynomial_field import PolynomialField
 from calibration.spline_field import SplineField
 from labkit.errors import ConfigError, DataError
@@ -121,9 +121,12 @@ class DispersionModel:
         if not self.fields:
             raise ConfigError("a dispersion model needs at least one field")
 
-    def within_domain(self, clamp: bool = True) -> DispersionModel:
-        """This model evaluated inside its calibrated region only (`clamp`), or as fitted."""
-        return replace(self, extrapolation="clamp" if clamp else "allow")
+    def within_domain(self, policy: str = "clamp") -> DispersionModel:
+        """This model as a use's extrapolation `policy` evaluates it: inside its calibrated
+        region only (``"clamp"``, and ``"refuse"``, which stops before going outside), or
+        as fitted (``"allow"``)."""
+        check_extrapolation(policy)
+        return replace(self, extrapolation="allow" if policy == "allow" else "clamp")
 
     @property
     def channels(self) -> list[str]:

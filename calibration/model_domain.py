@@ -340,7 +340,7 @@ def domain_use(
     """
     check_extrapolation(policy)
     region = model.region
-    fitted, clamped = model.within_domain(False), model.within_domain(True)
+    fitted, clamped = model.within_domain("allow"), model.within_domain("clamp")
     rows, cols = (int(v) for v in (shape or model.image_shape))
     # pixel centres of a coarse grid (the area), and the corners: the distance from a convex
     # hull is convex, so its largest value over the image is at a corner

@@ -403,7 +403,7 @@ class ReconstructOptions:
         model = self.dispersion
         if not isinstance(model, DispersionModel):
             model = load_dispersion_model(model)
-        return model.within_domain(self.extrapolation != "allow")
+        return model.within_domain(self.extrapolation)
 
     def domain_use(self, shape: tuple[int, int]) -> DomainUse | None:
         """How far the model's use on a `shape` image reaches beyond its domain (None
@@ -506,13 +506,16 @@ class ReconstructOptions:
         solves at w = ε, where only the ridge fixes the exact optimum."""
         return self.smoothness > 0 and not self.l1_terms and self.criterion != "mdc"
 
-    def check_image(self, shape: tuple[int, int], *, where: str = "the raw image") -> None:
-        """The checks that need the raw image's size `shape` (rows, cols)."""
+    def check_image(
+        self, shape: tuple[int, int], *, where: str = "the raw image"
+    ) -> DomainUse | None:
+        """The checks that need the raw image's size `shape` (rows, cols); returns how far
+        the dispersion model's use reaches beyond its domain (:meth:`domain_use`)."""
         check_dispersion_model(
             self.model, shape, self.latent, where=where, correction=self.correction
         )
         try:
-            self.domain_use(shape)
+            return self.domain_use(shape)
         except DataError as error:
             raise OptionError("extrapolation", f"{where}: {error}") from None
 

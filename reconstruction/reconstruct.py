@@ -281,9 +281,8 @@ def prepare_problem(
     o = options
     if o.criterion == "msec" and truth is None:
         raise DataError("weights='auto:msec' needs the true spectral image (truth=...)")
-    o.check_image(raw.shape)
+    domain = o.check_image(raw.shape)
     space = o.space
-    domain = o.domain_use(raw.shape)
     model, solve_model = o.model, o.solve_model
     reach = 0.0 if solve_model is None else max_dispersion(model, space, (0, 0), raw.shape)
     pad_px = o.pad_px

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import math
+from typing import Any
 
 from labkit.cfa import CFA_LAYOUTS
 
@@ -72,6 +73,26 @@ def fraction(text: str) -> float:
 #: The choices of ``--extrapolation`` (:data:`calibration.model_domain.EXTRAPOLATIONS`,
 #: repeated here so that building a parser imports no numerical code).
 EXTRAPOLATION_CHOICES = ("clamp", "refuse", "allow")
+
+
+def model_domain(
+    model: Any, args: argparse.Namespace, *, shape: tuple[int, int], wavelengths=None, what: str
+) -> tuple[Any, dict[str, Any], str | None]:
+    """`model` as ``--extrapolation`` evaluates it, how far its use on a `shape` image (at
+    `wavelengths`, nm) reaches beyond its calibrated domain (JSON-ready), and the warning
+    to print and record (None when nothing that matters lies outside). With ``refuse`` and
+    something outside, a DataError naming the bands and the fix."""
+    from calibration.model_domain import domain_use
+
+    model = model.within_domain(args.extrapolation)
+    use = domain_use(
+        model,
+        shape=shape,
+        wavelengths_nm=wavelengths,
+        policy=args.extrapolation,
+        fix="--extrapolation clamp (the default)",
+    )
+    return model, use.to_dict(), use.message(what=what)
 
 
 def add_extrapolation_option(parser: argparse.ArgumentParser, *, model: str = "the model") -> None:

@@ -11,7 +11,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from labkit.cli._options import add_cfa_option, add_extrapolation_option
+from labkit.cli._options import add_cfa_option, add_extrapolation_option, model_domain
 
 
 def register(commands: argparse._SubParsersAction) -> None:
@@ -73,7 +73,7 @@ def _warp(args: argparse.Namespace) -> int:
     check_output_files([args.out, args.out.with_suffix(".png")], inputs=[args.image, args.model])
     if args.image.is_file():
         verify_output_file(args.image, what="image")
-    model = load_dispersion_model(args.model).within_domain(args.extrapolation != "allow")
+    model = load_dispersion_model(args.model)
     provenance: dict[str, Any] = {"input": str(args.image), "dispersion_model": str(args.model)}
     try:
         raw = read_mosaic(args.image, cfa=args.cfa)
@@ -89,7 +89,7 @@ def _warp(args: argparse.Namespace) -> int:
                 f"colour-channel model (`labkit calibrate dispersion --reference G`), but "
                 f"{args.model} is a spectral model"
             )
-        _domain(model, args, raw.raw.shape, None, provenance)
+        model = _within_domain(model, args, raw.raw.shape, None, provenance)
         rgb = demosaic_bilinear(raw.raw, raw.cfa).astype("float32")
         corrected = correct_channels(rgb, model, order=args.order)
         preview = args.out.with_suffix(".png")
@@ -108,7 +108,9 @@ def _warp(args: argparse.Namespace) -> int:
             f"(`labkit calibrate dispersion --reference 600`), but {args.model} is a "
             "colour-channel model"
         )
-    _domain(model, args, spectral.cube.shape[:2], spectral.wavelengths_nm, provenance)
+    model = _within_domain(
+        model, args, spectral.cube.shape[:2], spectral.wavelengths_nm, provenance
+    )
     cube = correct_spectral(spectral.cube, spectral.wavelengths_nm, model, order=args.order)
     with staged_output_files([args.out], command="labkit correct warp") as staged:
         write_spectral_exr(
@@ -119,23 +121,17 @@ def _warp(args: argparse.Namespace) -> int:
     return 0
 
 
-def _domain(model: Any, args: argparse.Namespace, shape, wavelengths, provenance: dict) -> None:
-    """Check the model's use against its calibrated domain (refusing, with
-    --extrapolation refuse), print what lies outside, and record it in `provenance`."""
-    from calibration.model_domain import domain_use
-
-    use = domain_use(
-        model,
-        shape=shape,
-        wavelengths_nm=wavelengths,
-        policy=args.extrapolation,
-        fix="--extrapolation clamp (the default)",
+def _within_domain(model: Any, args: argparse.Namespace, shape, wavelengths, provenance: dict):
+    """The model as --extrapolation evaluates it; what lies outside its domain is printed
+    and recorded in `provenance` (refused with --extrapolation refuse)."""
+    model, domain, message = model_domain(
+        model, args, shape=shape, wavelengths=wavelengths, what=str(args.model)
     )
-    provenance["dispersion_domain"] = use.to_dict()
-    message = use.message(what=str(args.model))
+    provenance["dispersion_domain"] = domain
     if message:
         provenance["warnings"] = [message]
         print(f"warning: {message}")
+    return model
 
 
 def _spectral_or_none(path: Path) -> Any:

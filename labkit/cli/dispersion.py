@@ -60,7 +60,7 @@ def _eval(args: argparse.Namespace) -> int:
     from labkit.errors import DataError
 
     loaded = load_dispersion_model(args.model)
-    model = loaded.within_domain(args.extrapolation != "allow")
+    model = loaded.within_domain(args.extrapolation)
     region = model.region
     try:
         x, y = np.broadcast_arrays(np.array(args.x), np.array(args.y))

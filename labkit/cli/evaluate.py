@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from labkit.cli._options import add_cfa_option, add_extrapolation_option
+from labkit.cli._options import add_cfa_option, add_extrapolation_option, model_domain
 
 DESCRIPTION = """\
 Score colour images of one raw image (thesis §4.4, §4.6). RAW is a raw Bayer mosaic: a raw
@@ -109,16 +109,9 @@ def _evaluate(args: argparse.Namespace) -> int:
                 "baselines: give a colour-channel model (`labkit calibrate dispersion HDR "
                 "--reference G`); a spectral model warps spectral images (`labkit correct warp`)"
             )
-        from calibration.model_domain import domain_use
-
-        model = model.within_domain(args.extrapolation != "allow")
-        domain = domain_use(
-            model,
-            shape=raw.raw.shape,
-            policy=args.extrapolation,
-            fix="--extrapolation clamp (the default)",
+        model, _, message = model_domain(
+            model, args, shape=raw.raw.shape, what=f"--colour-dispersion {args.colour_dispersion}"
         )
-        message = domain.message(what=f"--colour-dispersion {args.colour_dispersion}")
         if message:
             notes.append(f"warning: {message}")
     boxes = labels = truth = None
