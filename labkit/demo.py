@@ -324,15 +324,37 @@ def reconstruct_and_save(
         "median_iterations": patches["iterations_median"],
         "exact": patches["exact"],
         "warnings": list(result.log.get("warnings", [])),
+        "choices": result.log.get("choices", {}),
     }
     return result, summary
 
 
-def reconstruction_warnings(report: Any, summaries: dict[str, dict[str, Any]]) -> None:
-    """Add the reconstructions' warnings (their logs' ``warnings``) to `report`, if any."""
+def reconstruction_notes(report: Any, summaries: dict[str, dict[str, Any]]) -> None:
+    """Add the reconstructions' warnings (their logs' ``warnings``), if any, and the
+    choices labkit made for each (their logs' ``choices``: value, how, why) to `report`."""
     notices = [f"{name}: {w}" for name, s in summaries.items() for w in s.get("warnings", [])]
     if notices:
         report.bullets(notices)
+    rows = [
+        [name, option, _choice_value(c["value"]), c["source"], c["reason"]]
+        for name, s in summaries.items()
+        for option, c in s.get("choices", {}).items()
+        if c["source"] != "given"
+    ]
+    if rows:
+        report.paragraph(
+            "Choices labkit made (each can be given as an option instead; `log.json`'s "
+            "`choices` records them with their evidence):"
+        )
+        report.table(["image", "option", "value", "how", "why"], rows)
+
+
+def _choice_value(value: Any) -> str:
+    if isinstance(value, list) and value and all(isinstance(v, (int, float)) for v in value):
+        return f"{len(value)} values, {value[0]:g}–{value[-1]:g}"
+    if isinstance(value, float):
+        return f"{value:g}"
+    return str(value)
 
 
 def _evaluate(
@@ -556,7 +578,7 @@ def _write_report(report, rigs, rig_file, shape, times, captures, models, recons
             for name, s in ((n, r["summary"]) for n, r in recons.items())
         ],
     )  # fmt: skip
-    reconstruction_warnings(report, {n: r["summary"] for n, r in recons.items()})
+    reconstruction_notes(report, {n: r["summary"] for n, r in recons.items()})
     report.figures(
         [(f"reconstruction/{r['slug']}/preview.png", f"{n}: sRGB") for n, r in recons.items()],
         width_px=340,

@@ -40,7 +40,7 @@ from labkit.demo import (
     Stages,
     method_figures,
     reconstruct_and_save,
-    reconstruction_warnings,
+    reconstruction_notes,
     save_models,
     stage_table,
 )
@@ -727,7 +727,7 @@ def _write_report(report, results, hdr, sensor, models, recons, evaluation) -> N
             for name, s in results["reconstruction"].items()
         ],
     )  # fmt: skip
-    reconstruction_warnings(report, results["reconstruction"])
+    reconstruction_notes(report, results["reconstruction"])
     report.figures(
         [(f"reconstruction/{r['folder'].name}/preview.png", f"{n}: sRGB")
          for n, r in recons.items()],

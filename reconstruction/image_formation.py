@@ -460,7 +460,7 @@ class ImageFormation(LinearOperator):
 
 
 def _translation_symbol(
-    dx: float, dy: float, rows: int, cols: int, interpolation: str = "bilinear"
+    dx: float, dy: float, rows: int, cols: int, interpolation: str
 ) -> np.ndarray:
     """DFT multiplier of ``out(q) = x sampled at q + (dx, dy)`` (periodic) with the weights
     of `interpolation` (bilinear, or Keys' cubic convolution), as Φ samples."""
@@ -498,7 +498,7 @@ def build_formation(
     overhang_px: int = 0,
     step_px: float = 0.1,
     colour_gain: float = 1.0,
-    interpolation: str = "bilinear",
+    interpolation: str | None = None,
 ) -> ImageFormation:
     """A for one patch: colour matrices of `latent`, and Φ from `model` if given.
 
@@ -521,10 +521,16 @@ def build_formation(
     colour_gain : float
         Factor on every colour matrix (the driver's normalisation, 1 / q_max).
     interpolation : {"bilinear", "cubic"}
-        Sampling weights of Φ (:class:`~reconstruction.operators.Dispersion`).
+        Sampling weights of Φ (:class:`~reconstruction.operators.Dispersion`); required
+        with a `model` (this layer has no default of its own: the options resolve it).
     """
     if model is None:
         return ImageFormation(shape, cfa, colour_gain * latent.colour_matrices(None))
+    if interpolation is None:
+        raise DataError(
+            "build_formation with a dispersion model needs interpolation= ('cubic' or "
+            "'bilinear'; ReconstructOptions resolves it)"
+        )
     if latent.kind == "colour":
         if model.variables != "xy":
             raise DataError(

@@ -22,27 +22,23 @@ from typing import Any
 import numpy as np
 
 from calibration.dispersion_model import DispersionModel, load_dispersion_model
-from calibration.model_domain import EXTRAPOLATIONS, DomainUse, domain_use
+from calibration.model_domain import DomainUse, domain_use
 from labkit.cfa import check_layout
 from labkit.errors import ConfigError, DataError
 from labkit.spectra import Spectra
-from reconstruction.band_balance import BAND_BALANCE
+from reconstruction.choices import Choices, resolve_choices
 from reconstruction.image_formation import DISCRETE, LatentSpace
-from reconstruction.operators.basis import KERNELS
-from reconstruction.operators.dispersion import INTERPOLATIONS
-from reconstruction.prior_terms import PRIORS, PriorTerm, prior_terms
-from reconstruction.problem import SUGGESTED_SMOOTHNESS
-from reconstruction.solvers.admm import default_rtol
+from reconstruction.option_table import (
+    CORRECTIONS,
+    LATENTS,
+    OPTION_TABLE,
+    REFERENCES,
+    OptionValueError,
+)
+from reconstruction.prior_terms import PriorTerm, prior_terms
 from reconstruction.weights import CRITERIA
 
-CORRECTIONS = ("model", "warp")
-"""How a dispersion model is undone: Φ inside the problem (3.1), or warping after (§3.9.2)."""
-
-LATENTS = ("spectral", "colour")
-"""What is estimated: the spectral image (3.1), or the colour image directly (3.27)."""
-
-REFERENCES = ("mean-colour",)
-"""Reference spectra of the §6.3 variant (None: the plain problem)."""
+__all__ = ["CORRECTIONS", "LATENTS", "REFERENCES", "OptionError", "ReconstructOptions"]
 
 
 class OptionError(ConfigError, DataError):
@@ -160,8 +156,8 @@ class ReconstructOptions:
         thesis' problem, for narrow-band light (bandpass filters, lasers, LEDs), whose
         spectra the term biases (measurements in :mod:`reconstruction.problem`): left to
         the default, σ is 0 for an image whose mean colour no smooth spectrum gives
-        (:data:`~reconstruction.reconstruct.NARROW_BAND_MISFIT`; the choice is logged as
-        ``spectral_smoothness_chosen``). Spectral latent only (default 0 for
+        (:data:`~reconstruction.choices.NARROW_BAND_MISFIT`; the choice is logged in
+        ``choices``). Spectral latent only (default 0 for
         ``latent="colour"``).
     band_balance : float, optional
         γ in [0, 1] of the L2 and EdgeL2 priors' band balance
@@ -260,38 +256,22 @@ class ReconstructOptions:
         except DataError as error:
             raise OptionError("cfa", f"{{option}}: {error}") from None
         object.__setattr__(self, "cfa", layout)
-        _choice("latent", self.latent, LATENTS)
-        _choice("correction", self.correction, CORRECTIONS)
-        _choice("extrapolation", self.extrapolation, EXTRAPOLATIONS)
-        _choice("interpolation", self.interpolation, INTERPOLATIONS)
-        _choice("kernel", self.kernel, KERNELS)
-        if self.reference is not None:
-            _choice("reference", self.reference, REFERENCES)
-        if self.prior not in PRIORS:
-            raise OptionError(
-                "prior",
-                f"unknown {{option}} {self.prior!r}; use one of {', '.join(PRIORS)} (thesis "
-                "Table 3.1, and VTV)",
-            )
+        for spec in OPTION_TABLE:  # each option's own type and bounds, as the CLI checks them
+            try:
+                object.__setattr__(self, spec.name, spec.check(getattr(self, spec.name)))
+            except OptionValueError as error:
+                raise OptionError(spec.name, error.template) from None
         if self.bands is not None:
             object.__setattr__(self, "bands", tuple(float(b) for b in self.bands))
         self.space  # noqa: B018  (built now: a response that cannot serve fails here)
-        smoothness = self.smoothness
-        if not (math.isfinite(smoothness) and smoothness >= 0):
-            raise OptionError(
-                "spectral_smoothness",
-                f"{{option}} must be finite and ≥ 0, got {self.spectral_smoothness!r}",
-            )
-        if smoothness > 0 and self.latent != "spectral":
+        self._check_weights()
+        if self.spectral_smoothness and self.latent != "spectral":
             raise OptionError(
                 "spectral_smoothness",
                 "{option} applies to {latent} spectral (bands along λ); give 0, or leave it "
                 "out, with {latent} colour",
             )
         self._check_band_balance()
-        rtol = self.tolerance
-        if not (isinstance(rtol, (int, float)) and 0 < rtol < 1):
-            raise OptionError("rtol", f"{{option}} must be a number in (0, 1), got {rtol!r}")
         if self.exact and self.l1_terms:
             raise OptionError(
                 "exact",
@@ -299,41 +279,23 @@ class ReconstructOptions:
                 f"{self.prior} has L1 terms, which only ADMM solves: drop it or pick an "
                 "L2-type prior",
             )
-        self._check_weights()
         if self.correction == "warp" and self.dispersion is None:
             raise OptionError(
                 "correction", "{option} warp needs a dispersion model ({dispersion}) to warp with"
             )
         self.model  # noqa: B018  (loaded now: a missing or malformed file fails here)
-        _whole("max_iter", self.max_iter, least=1)
-        _whole("patch_px", self.patch_px, least=8, even=True)
-        if self.pad_px is not None:
-            _whole("pad_px", self.pad_px, least=0, even=True)
-        _whole("weight_patch_px", self.weight_patch_px, least=8, even=True)
-        if isinstance(self.weight_patches, (int, np.integer)):
-            _whole("weight_patches", self.weight_patches, least=1)
-        if self.flat_threshold is not None and not (
-            math.isfinite(self.flat_threshold) and self.flat_threshold >= 0
-        ):
-            raise OptionError(
-                "flat_threshold",
-                f"{{option}} must be finite and ≥ 0 (or None: never skip), got "
-                f"{self.flat_threshold!r}",
-            )
 
     def _check_band_balance(self) -> None:
-        gamma = self.balance
-        if not (math.isfinite(gamma) and 0 <= gamma <= 1):
-            raise OptionError(
-                "band_balance", f"{{option}} must be in [0, 1], got {self.band_balance!r}"
-            )
-        if gamma > 0 and self.latent != "spectral":
+        gamma = self.band_balance
+        if not gamma:
+            return
+        if self.latent != "spectral":
             raise OptionError(
                 "band_balance",
                 "{option} applies to {latent} spectral (bands along λ); give 0, or leave it "
                 "out, with {latent} colour",
             )
-        if gamma > 0 and self.smoothness == 0:
+        if self.smoothness == 0:
             raise OptionError(
                 "band_balance",
                 "{option} needs spectral smoothness ({spectral_smoothness} > 0), which ties a "
@@ -341,7 +303,7 @@ class ReconstructOptions:
                 "search picks a weight that leaves such bands noisy: give {option} 0, or "
                 "leave it out",
             )
-        if gamma > 0 and not any(t.balanceable for t in self.terms):
+        if not any(t.balanceable for t in self.terms):
             raise OptionError(
                 "band_balance",
                 f"{{option}} applies to the L2 and EdgeL2 priors; {self.prior} has no L2 "
@@ -446,35 +408,27 @@ class ReconstructOptions:
         except DataError as error:
             raise OptionError("prior", f"{{option}}: {error}") from None
 
+    @cached_property
+    def choices(self) -> Choices:
+        """The automatic choices that need no image, resolved
+        (:func:`~reconstruction.choices.resolve_choices`; the reconstruction resolves them
+        again with the image's evidence)."""
+        return resolve_choices(self)
+
     @property
     def smoothness(self) -> float:
-        """σ in effect: :data:`~reconstruction.problem.SUGGESTED_SMOOTHNESS` for a spectral
-        latent image unless given, 0 for colour."""
-        if self.spectral_smoothness is not None:
-            try:
-                return float(self.spectral_smoothness)
-            except (TypeError, ValueError):
-                return math.nan
-        return SUGGESTED_SMOOTHNESS if self.latent == "spectral" else 0.0
+        """σ in effect before the image is seen (:attr:`choices`)."""
+        return self.choices.smoothness
 
     @property
     def balance(self) -> float:
-        """γ of the band balance in effect: :data:`~reconstruction.band_balance.BAND_BALANCE`
-        for the EdgeL2 prior with σ > 0 unless given, else 0."""
-        if self.band_balance is not None:
-            try:
-                return float(self.band_balance)
-            except (TypeError, ValueError):
-                return math.nan
-        # the guided prior only: the plain L2 prior's weight search on the real frames
-        # collapses with it (README, band balance)
-        applies = self.smoothness > 0 and any(t.guided for t in self.terms)
-        return BAND_BALANCE if applies else 0.0
+        """γ of the band balance in effect before the image is seen (:attr:`choices`)."""
+        return self.choices.balance
 
     @property
     def tolerance(self) -> float:
-        """ADMM's relative tolerance in effect (:func:`default_rtol` unless given)."""
-        return default_rtol(self.smoothness) if self.rtol is None else self.rtol
+        """ADMM's relative tolerance in effect before the image is seen (:attr:`choices`)."""
+        return self.choices.rtol
 
     @property
     def l1_terms(self) -> bool:
@@ -495,16 +449,13 @@ class ReconstructOptions:
 
     @property
     def direct(self) -> bool:
-        """Solve patches with few values at zero exactly and directly (σ > 0, non-negative,
-        L2-type, `exact` left to the default)."""
-        return self.exact is None and self.smoothness > 0 and self.nonneg and not self.l1_terms
+        """Patches with few values at zero are solved exactly and directly (:attr:`choices`)."""
+        return self.choices.direct
 
     @property
     def exact_weights(self) -> bool:
-        """Score weights on exact optima (:func:`~reconstruction.weights.select_weights`):
-        with σ > 0 the patch solves reach the optimum; not the MDC, whose ideal point needs
-        solves at w = ε, where only the ridge fixes the exact optimum."""
-        return self.smoothness > 0 and not self.l1_terms and self.criterion != "mdc"
+        """Weights are scored on exact optima (:attr:`choices`)."""
+        return self.choices.exact_weights
 
     def check_image(
         self, shape: tuple[int, int], *, where: str = "the raw image"
@@ -626,20 +577,6 @@ def check_dispersion_model(
             "to_reference`, or warp after the reconstruction with {correction} warp"
         )
     raise OptionError("dispersion", template)
-
-
-def _choice(option: str, value: object, allowed: tuple[str, ...]) -> None:
-    if value not in allowed:
-        raise OptionError(
-            option, f"unknown {{option}} {value!r}; use {' or '.join(repr(a) for a in allowed)}"
-        )
-
-
-def _whole(option: str, value: object, *, least: int, even: bool = False) -> None:
-    ok = isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= least
-    if not ok or (even and value % 2):
-        kind = "an even whole number" if even else "a whole number"
-        raise OptionError(option, f"{{option}} is {value!r}; expected {kind} ≥ {least}")
 
 
 _PLACEHOLDER = re.compile(

@@ -107,22 +107,27 @@ class PatchOptions:
             raise DataError(f"pad_px must be an even number ≥ 2, got {self.pad_px}")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class SolverOptions:
-    """Problem and solver settings shared by all patches (normalised units)."""
+    """Problem and solver settings shared by all patches (normalised units).
+
+    Every setting a user can choose is given explicitly: the defaults are resolved once,
+    by :func:`reconstruction.choices.resolve_choices`, not here. `cg_rtol` and `step_px`
+    are the method's constants (§3.2.5's 0.1 px dispersion sampling step).
+    """
 
     terms: tuple[PriorTerm, ...]
     weights: tuple[float, ...]
-    nonneg: bool = True
-    rtol: float | None = None  # None: the solver's default_rtol
-    atol: float | None = None
-    max_iter: int = 1000
+    nonneg: bool
+    rtol: float
+    atol: float | None
+    max_iter: int
+    exact: bool
+    direct: bool
+    interpolation: str
+    smoothness: float
     cg_rtol: float = 1e-5
     step_px: float = 0.1
-    exact: bool = False
-    direct: bool = False
-    interpolation: str = "bilinear"
-    smoothness: float = 0.0
 
 
 def chunk_sizes(length: int, target: int) -> tuple[int, ...]:

@@ -17,7 +17,6 @@ files (:mod:`reconstruction.result`).
 
 from __future__ import annotations
 
-import math
 import time
 import warnings
 from collections.abc import Callable, Sequence
@@ -25,16 +24,20 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
-from scipy.optimize import nnls
 
 from calibration.dispersion_model import DispersionModel
 from calibration.warp import correct_channels, correct_spectral
 from labkit.blas_threads import fixed_blas_threads
-from labkit.cfa import channel_index
 from labkit.errors import DataError
 from reconstruction.band_balance import balance_terms, band_factors
+from reconstruction.choices import (
+    Choices,
+    image_facts,
+    looks_narrow_band,
+    reference_scale,
+    resolve_choices,
+)
 from reconstruction.image_formation import LatentSpace, build_formation
-from reconstruction.operators import SpectralGradient
 from reconstruction.options import ReconstructOptions
 from reconstruction.patches import (
     PatchOptions,
@@ -50,15 +53,9 @@ from reconstruction.result import Reconstruction
 from reconstruction.solvers.admm import absolute_tolerance
 from reconstruction.weights import select_weights
 
-MIN_PAD_PX = 8
-"""Smallest default patch overlap, px."""
-
 MAX_RAW_MAGNITUDE = 1e30
 """Largest abs(raw value) accepted (and smallest non-zero peak, as its inverse): the spectral
 and raw-colour outputs are float32 (largest finite 3.4e38, smallest normal 1.2e-38)."""
-
-REFERENCE_SMOOTHING = 1e-2
-"""Weight w of (6.1)'s spectral-gradient penalty, relative to ‖C‖² (normalised units)."""
 
 
 class DomainWarning(UserWarning):
@@ -69,15 +66,6 @@ class DomainWarning(UserWarning):
 class NarrowBandWarning(UserWarning):
     """The image's light looks narrow-band while a spectral smoothness term was asked for
     (left to the default, σ is 0 for such images instead)."""
-
-
-NARROW_BAND_MISFIT = 0.02
-"""Misfit of (6.1)'s smooth fit to the image's mean colour above which the light is taken
-to be narrow-band: the default spectral smoothness then gives way to σ = 0 (logged), and
-an explicit σ > 0 draws a warning. On the simulated rig it
-lies above the misfit of unfiltered light and below that of most of the 10 nm filters;
-the filters at the ends of the camera's response stay below it, because what they pass is
-mostly leaked broadband light (figures in the README, spectral smoothness)."""
 
 
 def check_raw(raw: np.ndarray, *, where: str = "the raw image") -> np.ndarray:
@@ -122,42 +110,6 @@ def check_raw(raw: np.ndarray, *, where: str = "the raw image") -> np.ndarray:
             "(e.g. to counts or a fraction of saturation) before reconstruction"
         )
     return raw.astype(np.float64)
-
-
-def mean_colour(raw: np.ndarray, cfa: str) -> np.ndarray:
-    """Mean raw value of each CFA channel (R, G, B)."""
-    index = channel_index(cfa, raw.shape)
-    return np.array([raw[index == c].mean() for c in range(3)])
-
-
-def smooth_mean_colour(colour_mean: np.ndarray, colour: np.ndarray) -> tuple[np.ndarray, float]:
-    """(6.1): a smooth non-negative spectrum s with the image's mean colour, and its misfit.
-
-    Solves ``argmin_s ‖C s − c‖² + w‖∇λ s‖², s ≥ 0`` with c = `colour_mean` (the mean raw
-    colour, :func:`mean_colour`) and w = :data:`REFERENCE_SMOOTHING`·‖C‖², by NNLS on the
-    stacked system. Returns s and ``‖C s − c‖ / ‖c‖`` (0 when c is black).
-    """
-    n = colour.shape[1]
-    if n == 3 and np.allclose(colour, np.diag(np.diag(colour))):
-        s = np.maximum(colour_mean / np.diag(colour), 0.0)
-    else:
-        d = SpectralGradient((1, 1, n)).spectral_matrix
-        w = REFERENCE_SMOOTHING * float(np.sum(colour**2))
-        s, _ = nnls(
-            np.vstack([colour, np.sqrt(w) * d]), np.concatenate([colour_mean, np.zeros(n - 1)])
-        )
-    size = float(np.linalg.norm(colour_mean))
-    misfit = float(np.linalg.norm(colour @ s - colour_mean)) / size if size > 0 else 0.0
-    return s, misfit
-
-
-def reference_scale(spectrum: np.ndarray) -> np.ndarray:
-    """Per-channel scale r of §6.3 from :func:`smooth_mean_colour`'s spectrum: scaled to
-    mean 1 and floored at 1 % of its peak, so every channel keeps a positive scale."""
-    if not np.any(spectrum > 0):
-        return np.ones(spectrum.size)
-    s = np.maximum(spectrum, 0.01 * spectrum.max())
-    return s / s.mean()
 
 
 def representative_patches(raw: np.ndarray, size: int, count: int) -> list[tuple[int, int]]:
@@ -252,6 +204,9 @@ class PreparedProblem:
     terms : tuple of PriorTerm
         The prior's terms as the patches solve them: the L2 gradient terms with the band
         factors of `space` (:mod:`reconstruction.band_balance`) when γ > 0.
+    choices : Choices
+        Every setting in effect, with where it came from and why
+        (:func:`~reconstruction.choices.resolve_choices`); the stages read them here.
     """
 
     options: ReconstructOptions
@@ -264,6 +219,7 @@ class PreparedProblem:
     atol: float
     log: dict
     terms: tuple[PriorTerm, ...]
+    choices: Choices
 
 
 def prepare_problem(
@@ -285,61 +241,43 @@ def prepare_problem(
     space = o.space
     model, solve_model = o.model, o.solve_model
     reach = 0.0 if solve_model is None else max_dispersion(model, space, (0, 0), raw.shape)
-    pad_px = o.pad_px
-    if pad_px is None:
-        pad_px = max(MIN_PAD_PX, 2 * math.ceil(reach))
-        pad_px += pad_px % 2
-    elif reach > pad_px / 2:
-        raise DataError(
-            f"the dispersion model shifts the image by up to {reach:.1f} px, more than half "
-            f"the patch overlap pad_px={pad_px}; raise pad_px (or leave it to the default)"
-        )
     raw_scale = float(np.mean(raw))
     if not raw_scale > 0:
         raw_scale = max(float(np.max(np.abs(raw))), 1.0)
     y = raw / raw_scale
+    colour_gain = 1.0 / float(space.colour_matrix().sum(axis=1).max())
+    facts = image_facts(y, o, space, colour_gain=colour_gain, reach_px=reach)
+    choices = resolve_choices(o, facts=facts)
+    pad_px = choices.pad_px
+    if reach > pad_px / 2:
+        raise DataError(
+            f"the dispersion model shifts the image by up to {reach:.1f} px, more than half "
+            f"the patch overlap pad_px={pad_px}; raise pad_px (or leave it to the default)"
+        )
     noise = noise_sigma(y)
     patches = PatchOptions(
         patch_px=o.patch_px, pad_px=pad_px, flat_threshold=o.flat_threshold, noise_sigma=noise
     )
-    colour_gain = 1.0 / float(space.colour_matrix().sum(axis=1).max())
-    smoothness = o.smoothness
+    if o.reference == "mean-colour":
+        space = space.with_scale(reference_scale(facts.smooth_fit))
+    smoothness = choices.smoothness
     notices = []
-    chosen = None
-    if o.reference == "mean-colour" or smoothness > 0:
-        # one fit of (6.1) serves both, on the colour matrix of spectra (before any scale)
-        colour_mean = mean_colour(y, o.cfa)
-        fit, misfit = smooth_mean_colour(colour_mean, colour_gain * space.colour_matrix())
-        if o.reference == "mean-colour":
-            space = space.with_scale(reference_scale(fit))
-        # a non-positive channel mean has no colour to judge
-        narrow = smoothness > 0 and np.all(colour_mean > 0) and misfit > NARROW_BAND_MISFIT
-        if narrow and o.spectral_smoothness is None:
-            # the default σ would bias these colours: the thesis' problem instead
-            chosen = (
-                f"0 instead of the default {smoothness:g}: the image's mean raw colour is "
-                f"{100 * misfit:.0f} % away from that of any smooth non-negative spectrum "
-                "(narrow-band light)"
-            )
-            if o.balance > 0:
-                chosen += ", and no band balance (it needs σ > 0)"
-            o = replace(o, spectral_smoothness=0.0, band_balance=None)
-            smoothness = 0.0
-        elif narrow:
-            notices.append(
-                f"the image's mean raw colour is {100 * misfit:.0f} % away from that of any "
-                "smooth non-negative spectrum: narrow-band light? The spectral smoothness "
-                f"term (σ = {smoothness:g}) biases such colours; give spectral_smoothness=0 "
-                "(--spectral-smoothness 0) for the thesis' problem, or leave it to the default"
-            )
-            warnings.warn(notices[-1], NarrowBandWarning, stacklevel=4)
+    given = choices["spectral_smoothness"].source == "given"
+    if given and smoothness > 0 and looks_narrow_band(facts):
+        notices.append(
+            f"the image's mean raw colour is {100 * facts.misfit:.0f} % away from that of any "
+            "smooth non-negative spectrum: narrow-band light? The spectral smoothness "
+            f"term (σ = {smoothness:g}) biases such colours; give spectral_smoothness=0 "
+            "(--spectral-smoothness 0) for the thesis' problem, or leave it to the default"
+        )
+        warnings.warn(notices[-1], NarrowBandWarning, stacklevel=4)
     if domain is not None and domain.outside:
         notices.append(domain.message())
         warnings.warn(notices[-1], DomainWarning, stacklevel=4)
     terms = o.terms
     factors = None
-    if o.balance > 0:
-        factors = band_factors(space.colour_matrix(), exponent=o.balance)
+    if choices.balance > 0:
+        factors = band_factors(space.colour_matrix(), exponent=choices.balance)
         terms = balance_terms(terms, factors)
     log: dict = {
         "warnings": notices,
@@ -347,13 +285,14 @@ def prepare_problem(
         "bands_nm": None if space.centres_nm is None else [float(v) for v in space.centres_nm],
         "prior": o.prior,
         "nonneg": o.nonneg,
+        "choices": choices.to_dict(),
         "spectral_smoothness": smoothness,
-        "spectral_smoothness_chosen": chosen,
-        "band_balance": o.balance,
+        "band_balance": choices.balance,
         "band_factors": None if factors is None else [float(v) for v in factors],
-        "exact": bool(o.exact),
-        "direct": o.direct,
-        "rtol": o.tolerance,
+        "solver": choices.solver,
+        "exact": choices.exact,
+        "direct": choices.direct,
+        "rtol": choices.rtol,
         "reference": o.reference,
         "patch_px": o.patch_px,
         "pad_px": pad_px,
@@ -389,9 +328,10 @@ def prepare_problem(
         colour_gain=colour_gain,
         space=space,
         patches=patches,
-        atol=absolute_tolerance(y, o.tolerance),
+        atol=absolute_tolerance(y, choices.rtol),
         log=log,
         terms=terms,
+        choices=choices,
     )
 
 
@@ -436,7 +376,7 @@ def choose_weights(job: PreparedProblem, *, truth: np.ndarray | None = None) -> 
                     job.terms,
                     (1.0,) * len(job.terms),
                     o.nonneg,
-                    smoothness=o.smoothness,
+                    smoothness=job.choices.smoothness,
                 )
             )
             if truth is not None:
@@ -449,7 +389,7 @@ def choose_weights(job: PreparedProblem, *, truth: np.ndarray | None = None) -> 
             criterion=criterion,
             truths=truths or None,
             truth_matrix=_spectral_matrix(job.space) if criterion == "msec" else None,
-            exact=o.exact_weights,
+            exact=job.choices.exact_weights,
         )
         chosen = selection.weights
         entry = {
@@ -458,7 +398,7 @@ def choose_weights(job: PreparedProblem, *, truth: np.ndarray | None = None) -> 
             "criterion_value": selection.value,
             "rounds": selection.rounds,
             "solves": selection.solves,
-            "exact": o.exact_weights,
+            "exact": job.choices.exact_weights,
             "patches": [list(origin) for origin in origins],
             "patch_px": size,
         }
@@ -487,16 +427,16 @@ def solve_patches(
     )
     t1 = time.perf_counter()
     solver = SolverOptions(
-        job.terms,
-        tuple(weights),
-        o.nonneg,
-        o.tolerance,
-        job.atol,
-        o.max_iter,
-        exact=bool(o.exact),
-        direct=o.direct,
+        terms=job.terms,
+        weights=tuple(weights),
+        nonneg=o.nonneg,
+        rtol=job.choices.rtol,
+        atol=job.atol,
+        max_iter=o.max_iter,
+        exact=job.choices.exact,
+        direct=job.choices.direct,
         interpolation=o.interpolation,
-        smoothness=o.smoothness,
+        smoothness=job.choices.smoothness,
     )
     latent, records = reconstruct_patches(
         job.y,

@@ -12,43 +12,24 @@ a whole; an interrupted run leaves the previous DIR as it was).
 from __future__ import annotations
 
 import argparse
-import itertools
-import math
 import sys
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from labkit.cli._options import add_cfa_option, add_extrapolation_option
+from labkit.cli._options import add_cfa_option
 from labkit.errors import ConfigError, DataError
+from reconstruction.option_table import NONE_TEXT, OPTION_TABLE, OptionSpec, flags
 
 #: What ``--scheduler`` accepts besides ``tcp://host:port``.
 SCHEDULERS = ("threads", "processes", "sync")
-#: Texture below which a patch counts as flat (passed to reconstruct, counted in the summary).
-FLAT_THRESHOLD = 0.01
-#: How the command line spells the options of :class:`reconstruction.ReconstructOptions`.
-CLI_NAMES = {
-    "cfa": "--cfa",
-    "response": "--response",
-    "bands": "--bands",
-    "dispersion": "--dispersion",
-    "correction": "--correction",
-    "extrapolation": "--extrapolation",
-    "interpolation": "--interpolation",
-    "prior": "--prior",
-    "nonneg": "--nonneg",
-    "spectral_smoothness": "--spectral-smoothness",
-    "band_balance": "--band-balance",
-    "weights": "--weights",
-    "latent": "--latent",
-    "reference": "--reference",
-    "rtol": "--rtol",
-    "exact": "--exact",
-    "patch_px": "--patch-px",
-    "pad_px": "--pad-px",
-    "scheduler": "--scheduler",
-}
+#: How the command line spells the options of :class:`reconstruction.ReconstructOptions`:
+#: the declared ones (:mod:`reconstruction.option_table`) and those read from files.
+CLI_NAMES = flags(
+    {"cfa": "--cfa", "response": "--response", "dispersion": "--dispersion",
+     "scheduler": "--scheduler"}
+)  # fmt: skip
 
 #: The weight criteria the command line can use (``auto:msec`` needs the true image).
 CLI_CRITERIA = ("dmc", "dmc-menon", "dmc-malvar", "mdc")
@@ -95,13 +76,6 @@ def register(commands: argparse._SubParsersAction) -> None:
         "the raw file or --cfa)",
     )
     parser.add_argument(
-        "--bands",
-        default=None,
-        metavar="NM,NM,…",
-        help="equally spaced band centres, nm, e.g. 400,450,500,550,600,650,700 "
-        "(default: chosen from the camera response's bandlimit, thesis §3.3.2)",
-    )
-    parser.add_argument(
         "--dispersion",
         type=Path,
         default=None,
@@ -109,112 +83,8 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="to_reference dispersion model of this camera and image size (spectral for "
         "--latent spectral, colour-channel for --latent colour); default: no Φ",
     )
-    parser.add_argument(
-        "--correction",
-        default="model",
-        metavar="model|warp",
-        help="model: Φ inside the problem (3.1) (default); warp: thesis §3.9.2, solve "
-        "without Φ and warp the result onto the reference band (either model direction)",
-    )
-    add_extrapolation_option(parser, model="the dispersion model")
-    parser.add_argument(
-        "--interpolation",
-        default="cubic",
-        metavar="cubic|bilinear",
-        help="sampling weights of Φ: Keys' cubic convolution (default), which avoids "
-        "bilinear's blur and the overshoot it causes at edges, or bilinear (thesis §3.2.5), "
-        "faster (figures in the README)",
-    )
-    parser.add_argument(
-        "--prior",
-        default="EdgeL2",
-        help="EdgeL2 (default): the L2 prior weighted by the raw image's own edges, which "
-        "fills unsampled pixels along edges rather than across them, at L2's cost; a prior "
-        "of thesis Table 3.1: L1, L2, Lap1, Lap2, L1L1, L2L2, L1SpatialLap2 or "
-        "L1SpectralLap2; or VTV, vectorial total variation (edges shared by all bands; "
-        "sharpest edges, about 3× the time)",
-    )
-    parser.add_argument(
-        "--nonneg",
-        action=argparse.BooleanOptionalAction,
-        default=True,
-        help="constrain the latent image to be non-negative (default: --nonneg)",
-    )
-    parser.add_argument(
-        "--spectral-smoothness",
-        default=None,
-        metavar="SIGMA",
-        help="weight σ of the spectral roughness term, which picks the smoothest of the "
-        "spectra the data and the prior cannot tell apart without pulling each patch's "
-        "mean colour (beyond the thesis), in normalised units; 0 is the thesis' problem, "
-        "for narrow-band light (bandpass filters, lasers, LEDs), whose spectra it biases "
-        "(default 1e-3 with --latent spectral, 0 with --latent colour and for an image "
-        "whose mean colour no smooth spectrum gives, which is printed and logged)",
-    )
-    parser.add_argument(
-        "--band-balance",
-        default=None,
-        metavar="GAMMA",
-        help="γ in [0, 1] of the L2 and EdgeL2 priors' band balance (beyond the thesis): each "
-        "band's spatial smoothing is weighed by its share of the camera's response to the "
-        "power γ, so that bands the camera barely senses keep their edges; 0 smooths every "
-        "band alike, as the thesis (default 0.5 for EdgeL2 with spectral smoothness σ > 0, "
-        "else 0; refused at --spectral-smoothness 0)",
-    )
-    parser.add_argument(
-        "--weights",
-        default="auto:dmc",
-        metavar="auto:dmc|auto:dmc-menon|auto:dmc-malvar|auto:mdc|fixed:W[,W…]",
-        help="regularisation weights: chosen by Algorithm 3 on the most textured patch with "
-        "the demosaicing criterion against bilinear demosaicing (dmc, the thesis') or "
-        "against Menon's or Malvar's demosaic (dmc-menon, dmc-malvar: sharper weights for "
-        "--prior VTV; not for narrow-band light), or the minimum-distance criterion (mdc); "
-        "or fixed, one per prior term, in normalised units (default auto:dmc)",
-    )
-    parser.add_argument(
-        "--latent",
-        default="spectral",
-        metavar="spectral|colour",
-        help="spectral: problem (3.1); colour: direct raw-colour estimation (3.27) "
-        "(default spectral)",
-    )
-    parser.add_argument(
-        "--reference",
-        default="none",
-        metavar="mean-colour|none",
-        help="mean-colour: reconstruct relative to a smooth spectrum fitted to the image's "
-        "mean colour (thesis §6.3) (default none)",
-    )
-    parser.add_argument(
-        "--rtol",
-        default=None,
-        metavar="TOL",
-        help="ADMM relative tolerance per patch (default 1e-5, within 1e-4 of the optimum; "
-        "1e-4 with --spectral-smoothness 0)",
-    )
-    parser.add_argument(
-        "--exact",
-        action="store_true",
-        help="with --nonneg and an L2-type prior, solve every patch exactly (projected-Newton "
-        "active-set method) instead of by ADMM alone; with --spectral-smoothness 0 ADMM stops "
-        "0.05–10 %% above the optimum at small weights, at several times the cost. (With the "
-        "default σ, patches with few values at zero are solved exactly anyway, faster than "
-        "ADMM, and the rest by ADMM to within 1e-4.)",
-    )
-    parser.add_argument(
-        "--patch-px",
-        default="48",
-        metavar="N",
-        help="patch size, px, even ≥ 8 (default 48: small patches suit the FFT "
-        "preconditioner of the dispersion-aware solve)",
-    )
-    parser.add_argument(
-        "--pad-px",
-        default=None,
-        metavar="N",
-        help="overlap on each side of a patch, px, even ≥ 2; at least twice the largest "
-        "dispersion (default: the smallest even value ≥ 8 that is)",
-    )
+    for spec in OPTION_TABLE:
+        _add_declared(parser, spec)
     parser.add_argument(
         "--scheduler",
         default="threads",
@@ -234,6 +104,37 @@ def register(commands: argparse._SubParsersAction) -> None:
         "--quiet", action="store_true", help="no progress bar (it is off anyway off a terminal)"
     )
     parser.set_defaults(handler=_reconstruct)
+
+
+def _add_declared(parser: argparse.ArgumentParser, spec: OptionSpec) -> None:
+    """The flag of a declared option (:mod:`reconstruction.option_table`): its text is kept
+    as given (None when left out) and parsed in :func:`_prepare`, against the same bounds as
+    the Python API's."""
+    from dataclasses import MISSING, fields
+
+    from reconstruction import ReconstructOptions
+
+    default = spec.default_help
+    if not default:
+        field = next(f for f in fields(ReconstructOptions) if f.name == spec.name)
+        value = field.default if field.default is not MISSING else None
+        if spec.kind == "flag":
+            default = spec.flag if value else f"--no-{spec.flag[2:]}"
+        else:
+            default = (
+                NONE_TEXT
+                if value is None
+                else f"{value:g}"
+                if isinstance(value, float)
+                else str(value)
+            )
+    text = f"{spec.help} (default: {default})"
+    if spec.kind == "flag":
+        parser.add_argument(
+            spec.flag, action=argparse.BooleanOptionalAction, default=None, help=text
+        )
+    else:
+        parser.add_argument(spec.flag, default=None, metavar=spec.metavar, help=text)
 
 
 @dataclass
@@ -258,8 +159,9 @@ def _run(args: argparse.Namespace, job: _Job) -> int:
 
     started = time.perf_counter()
     bar = _ProgressBar(enabled=not args.quiet and sys.stderr.isatty())
-    if bar.enabled and args.weights.startswith("auto:"):
-        print(f"choosing weights ({args.weights}, Algorithm 3)…", file=sys.stderr)
+    weights = job.options.weights
+    if bar.enabled and isinstance(weights, str) and weights.startswith("auto:"):
+        print(f"choosing weights ({weights}, Algorithm 3)…", file=sys.stderr)
     try:
         from reconstruction import reconstruct
         from reconstruction.reconstruct import DomainWarning, NarrowBandWarning
@@ -291,28 +193,21 @@ def _prepare(args: argparse.Namespace) -> _Job:
     from reconstruction.reconstruct import check_raw
 
     scheduler = _scheduler(args.scheduler)
-    rtol = None if args.rtol is None else _positive_float(args.rtol, "--rtol")
-    smoothness = None
-    if args.spectral_smoothness is not None:
-        smoothness = _positive_float(args.spectral_smoothness, "--spectral-smoothness", zero=True)
-    balance = None
-    if args.band_balance is not None:
-        balance = _positive_float(args.band_balance, "--band-balance", zero=True, most=1.0)
-    patch_px = _even_int(args.patch_px, "--patch-px", 8)
-    pad_px = None if args.pad_px is None else _even_int(args.pad_px, "--pad-px", 2)
+    given = _declared(args)
+    latent = given.get("latent", "spectral")
     _check_out(args.out, inputs=[args.raw, args.dispersion, args.rig])
     if args.rig is not None and args.response is not None:
         raise ConfigError(
             "give either --rig (camera response and CFA from the rig file) or --response "
             "(a response CSV), not both"
         )
-    if args.latent == "spectral" and args.rig is None and args.response is None:
+    if latent == "spectral" and args.rig is None and args.response is None:
         raise ConfigError(
             "a spectral reconstruction needs the camera response: give --rig RIG.yaml or "
             "--response FILE.csv (wavelength_nm,R,G,B)"
         )
-    bands = None if args.bands is None else _bands(args.bands)
-    _check_weights(args.weights)
+    if "weights" in given:
+        _check_weights(given["weights"])
 
     if args.raw.is_dir():
         raise DataError(
@@ -355,33 +250,18 @@ def _prepare(args: argparse.Namespace) -> _Job:
         source = args.response
         response = _response(source, "--response")
     names = dict(CLI_NAMES)
-    if args.latent == "spectral" and bands is None and _is_sensor_map(source):
-        bands = [float(w) for w in response.wavelengths]  # the map's own bands
+    if latent == "spectral" and "bands" not in given and _is_sensor_map(source):
+        given["bands"] = [float(w) for w in response.wavelengths]  # the map's own bands
         names["bands"] = f"the bands of {source}"
     elif source is not None:
         names["response"] = f"camera response {source}"
     try:
         options = ReconstructOptions(
             cfa=raw.cfa,
-            response=response if args.latent == "spectral" else None,
-            bands=bands,
+            response=response if latent == "spectral" else None,
             dispersion=args.dispersion,
-            correction=args.correction,
-            extrapolation=args.extrapolation,
-            interpolation=args.interpolation,
-            prior=args.prior,
-            nonneg=args.nonneg,
-            spectral_smoothness=smoothness,
-            band_balance=balance,
-            weights=args.weights,
-            latent=args.latent,
-            reference=None if args.reference == "none" else args.reference,
-            rtol=rtol,
-            exact=True if args.exact else None,
-            patch_px=patch_px,
-            pad_px=pad_px,
-            flat_threshold=FLAT_THRESHOLD,
             scheduler=scheduler,
+            **given,
         )
     except OptionError as error:
         raise ConfigError(error.message(names)) from None
@@ -391,6 +271,27 @@ def _prepare(args: argparse.Namespace) -> _Job:
         except OptionError as error:
             raise ConfigError(error.message(names)) from None
     return _Job(raw=raw, response_source=source, options=options)
+
+
+def _declared(args: argparse.Namespace) -> dict[str, Any]:
+    """The declared options given on the command line, parsed and checked against the
+    option table (:mod:`reconstruction.option_table`); those left out are absent, so that
+    :class:`~reconstruction.ReconstructOptions` applies its defaults."""
+    from reconstruction.option_table import PARSERS, OptionValueError
+
+    given: dict[str, Any] = {}
+    for spec in OPTION_TABLE:
+        value = getattr(args, spec.name)
+        if value is None:
+            continue
+        try:
+            if spec.kind == "flag":
+                given[spec.name] = spec.check(value)
+            else:
+                given[spec.name] = PARSERS.get(spec.name, spec.parse)(value)
+        except OptionValueError as error:
+            raise ConfigError(error.template.replace("{option}", spec.flag)) from None
+    return given
 
 
 def _scheduler(value: str) -> str:
@@ -414,56 +315,6 @@ def _unreachable(scheduler: str, error: OSError) -> str:
         f"--scheduler {scheduler}: cannot reach the Dask scheduler ({error}); start one "
         "(`dask scheduler`) or use --scheduler threads"
     )
-
-
-def _positive_float(
-    text: str, option: str, *, zero: bool = False, most: float | None = None
-) -> float:
-    """A finite number > 0 (≥ 0 with `zero`, ≤ `most` if given) from an option's text, or
-    a ConfigError."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    bad = not math.isfinite(value) or value < 0 or (value == 0 and not zero)
-    if bad or (most is not None and value > most):
-        if most is not None:
-            low = "[0" if zero else "(0"
-            expected = f"a number in {low}, {most:g}] such as {most / 2:g}"
-        elif zero:
-            expected = "a number ≥ 0 such as 1e-3"
-        else:
-            expected = "a positive number such as 1e-4"
-        raise ConfigError(f"{option} is {text!r}; expected {expected}")
-    return value
-
-
-def _even_int(text: str, option: str, least: int) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = -1
-    if value < least or value % 2:
-        raise ConfigError(f"{option} is {text!r}; expected an even whole number ≥ {least}")
-    return value
-
-
-def _bands(text: str) -> list[float]:
-    try:
-        values = [float(part) for part in text.split(",")]
-    except ValueError:
-        values = []
-    if not values or not all(math.isfinite(v) for v in values):
-        raise ConfigError(
-            f"--bands {text!r}: expected comma-separated wavelengths in nm, "
-            "e.g. 400,450,500,550,600,650,700"
-        )
-    if len(values) < 2 or any(b <= a for a, b in itertools.pairwise(values)):
-        raise ConfigError(
-            f"--bands {text!r}: give ≥ 2 band centres in increasing order, "
-            "e.g. 400,450,500,550,600,650,700"
-        )
-    return values
 
 
 def _check_weights(text: str) -> None:
@@ -554,6 +405,18 @@ def _write_outputs(args: argparse.Namespace, job: _Job, result: Any) -> dict[str
     )
 
 
+def _shown(value: Any) -> str:
+    if value is None:
+        return NONE_TEXT
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, float):
+        return f"{value:g}"
+    if isinstance(value, list):
+        return ",".join(f"{v:g}" if isinstance(v, float) else str(v) for v in value)
+    return str(value)
+
+
 def _print_summary(
     args: argparse.Namespace, result: Any, paths: dict[str, Path], seconds: float
 ) -> None:
@@ -564,9 +427,9 @@ def _print_summary(
         what = f"{len(w)} bands {w[0]:g}–{w[-1]:g} nm"
     else:
         what = "raw colour (latent colour)"
-    sign = "non-negative" if args.nonneg else "signed"
+    sign = "non-negative" if log["nonneg"] else "signed"
     balance = f" (band balance γ = {log['band_balance']:g})" if log.get("band_balance") else ""
-    print(f"reconstructed {rows}×{cols} px → {what}; prior {args.prior}{balance}, {sign}")
+    print(f"reconstructed {rows}×{cols} px → {what}; prior {log['prior']}{balance}, {sign}")
     weights = log["weights"]
     values = ", ".join(f"{v:.4g}" for v in weights["values"])
     if weights["criterion"] == "fixed":
@@ -580,7 +443,7 @@ def _print_summary(
     flat = patches["flat"]
     if args.dispersion is None:
         phi = "no dispersion model"
-    elif args.correction == "warp":
+    elif log["dispersion"]["correction"] == "warp":
         phi = f"solved without Φ, then warped ({log['warp_seconds']:.1f} s, §3.9.2)"
     else:
         skipped = patches["phi_skipped_negligible"] + patches["phi_skipped_flat"]
@@ -605,8 +468,11 @@ def _print_summary(
             f"{b:g} → {w:.1f}" for b, w in zip(log["bands_nm"], light["values"], strict=True)
         )
         print(f"Φ at the filters' effective wavelengths (nm): {pairs}")
-    if log.get("spectral_smoothness_chosen"):
-        print(f"spectral smoothness: {log['spectral_smoothness_chosen']}")
+    made = [(name, c) for name, c in log["choices"].items() if c["source"] != "given"]
+    if made:
+        print("choices labkit made (give the option to override):")
+        for name, c in made:
+            print(f"  {CLI_NAMES.get(name, name)} {_shown(c['value'])}: {c['reason']}")
     for notice in log["warnings"]:
         print(f"warning: {notice}")
     print(f"time: {seconds:.1f} s (weights {weights['seconds']:.1f} s, patches "

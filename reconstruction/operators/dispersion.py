@@ -118,7 +118,7 @@ class Dispersion(LinearOperator):
         shape: tuple[int, int] | None = None,
         overhang_px: int = 0,
         boundary: str = "clamp",
-        interpolation: str = "bilinear",
+        interpolation: str,
     ) -> None:
         if boundary not in ("clamp", "periodic"):
             raise DataError(f"unknown boundary {boundary!r}; use 'clamp' or 'periodic'")

@@ -115,10 +115,18 @@ def test_phi_of_a_band_beyond_the_range_is_the_edge_bands() -> None:
     """Φ at 400 nm of a model calibrated over 450–687 nm, clamped: exactly Φ at 450 nm."""
     model = model_over(grid_region())
     clamped = Dispersion(
-        model.within_domain(), np.array([400.0]), origin=(200, 300), shape=(16, 16)
+        model.within_domain(),
+        np.array([400.0]),
+        origin=(200, 300),
+        shape=(16, 16),
+        interpolation="bilinear",
     )
-    edge = Dispersion(model, np.array([450.0]), origin=(200, 300), shape=(16, 16))
-    raw = Dispersion(model, np.array([400.0]), origin=(200, 300), shape=(16, 16))
+    edge = Dispersion(
+        model, np.array([450.0]), origin=(200, 300), shape=(16, 16), interpolation="bilinear"
+    )
+    raw = Dispersion(
+        model, np.array([400.0]), origin=(200, 300), shape=(16, 16), interpolation="bilinear"
+    )
     np.testing.assert_array_equal(clamped.taps.weights_x, edge.taps.weights_x)
     np.testing.assert_array_equal(clamped.taps.offsets_x, edge.taps.offsets_x)
     assert not np.array_equal(raw.taps.offsets_x, edge.taps.offsets_x)

@@ -141,7 +141,8 @@ def test_flat_grey_with_rig_and_dispersion(
     # no smooth spectrum has the colour (0.3, 0.5, 0.2) under the rig's response: the
     # default spectral smoothness gives way to the thesis' problem, and the log says so
     assert log["spectral_smoothness"] == 0.0
-    assert "away from that of any smooth" in log["spectral_smoothness_chosen"]
+    sigma = log["choices"]["spectral_smoothness"]
+    assert sigma["source"] == "image" and "away from that of any smooth" in sigma["reason"]
 
 
 def test_a_model_lacking_bands_is_clamped_and_the_outputs_say_so(
@@ -188,12 +189,16 @@ def test_narrow_band_light_gets_the_thesis_problem(
     assert main([*base, "--out", str(tmp_path / "default")]) == 0
     captured = capsys.readouterr()
     lines = [line for line in captured.out.splitlines() if "narrow-band light" in line]
-    assert len(lines) == 1 and lines[0].startswith("spectral smoothness: 0 instead of")
+    assert len(lines) == 1 and lines[0].startswith("  --spectral-smoothness 0: ")
+    assert "choices labkit made (give the option to override):" in captured.out
     assert "warning" not in captured.out and "NarrowBandWarning" not in captured.err
     assert "band balance" not in captured.out.splitlines()[0]  # it goes with σ
+    assert "  --band-balance 0: no band balance at σ = 0" in captured.out
     log = json.loads((tmp_path / "default" / "log.json").read_text())
     assert log["spectral_smoothness"] == 0.0 and log["warnings"] == []
-    assert "19 %" in log["spectral_smoothness_chosen"]
+    sigma = log["choices"]["spectral_smoothness"]
+    assert sigma["source"] == "image" and "19 %" in sigma["reason"]
+    assert sigma["evidence"]["threshold"] == 0.02 and sigma["evidence"]["misfit"] > 0.18
     assert log["band_balance"] == 0.0 and log["band_factors"] is None
 
     out = tmp_path / "asked"
@@ -204,23 +209,20 @@ def test_narrow_band_light_gets_the_thesis_problem(
     assert "--spectral-smoothness 0" in lines[0] and "NarrowBandWarning" not in captured.err
     assert "prior EdgeL2 (band balance γ = 0.5), non-negative" in captured.out
     log = json.loads((out / "log.json").read_text())
-    assert log["spectral_smoothness"] == 1e-3 and log["spectral_smoothness_chosen"] is None
+    assert log["spectral_smoothness"] == 1e-3
+    assert log["choices"]["spectral_smoothness"]["source"] == "given"
     assert log["band_balance"] == 0.5 and len(log["band_factors"]) == len(BANDS.split(","))
     assert len(log["warnings"]) == 1 and "19 %" in log["warnings"][0]
 
 
-def test_cubic_interpolation_keeps_a_grey_scene_grey(
-    inputs, tmp_path: Path, capsys, monkeypatch
-) -> None:
+def test_cubic_interpolation_keeps_a_grey_scene_grey(inputs, tmp_path: Path, capsys) -> None:
     """--interpolation cubic: Φ with Keys weights (they sum to 1) on every patch (flat
     detection off) leaves a flat grey scene grey to 1 % (0.45 % measured; ADMM's tolerance
     with Φ, bilinear weights give 0.3 %), and the log says which weights."""
-    import labkit.cli.reconstruct as cli
-
-    monkeypatch.setattr(cli, "FLAT_THRESHOLD", None)
     out = tmp_path / "out"
     args = ["reconstruct", str(inputs["grey"]), "--response", str(inputs["response"]),
             "--bands", BANDS, "--dispersion", str(inputs["model"]), "--interpolation", "cubic",
+            "--flat-threshold", "none",
             "--weights", "fixed:0.01", "--patch-px", "32", "--pad-px", "8", "--quiet",
             "--out", str(out)]  # fmt: skip
     assert main(args) == 0
@@ -371,7 +373,8 @@ def test_help_documents_every_option(capsys) -> None:
         ("grey", ["--response", "R", "--latent", "colour", "--bands", BANDS], "no --bands"),
         ("grey", ["--response", "R", "--patch-px", "30.5"], "--patch-px is '30.5'"),
         ("grey", ["--response", "R", "--scheduler", "mpi"], "--scheduler is 'mpi'"),
-        ("grey", ["--response", "R", "--spectral-smoothness", "-1"], "expected a number ≥ 0"),
+        ("grey", ["--response", "R", "--spectral-smoothness", "-1"],
+         "--spectral-smoothness is '-1'; expected a finite number ≥ 0 such as 1e-3"),
         ("grey", ["--response", "R", "--latent", "colour", "--spectral-smoothness", "1e-3"],
          "--spectral-smoothness applies to --latent spectral"),
         ("grey", ["--response", "R", "--band-balance", "1.5"],

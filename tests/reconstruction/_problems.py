@@ -85,8 +85,21 @@ def rig_corner_formation(shape: tuple[int, int]) -> ImageFormation:
     """A at the top-left corner of the simulated rig's lens (Φ up to ≈ 2 px), colour scaled
     so the brightest raw channel peaks at 1 — through `colour_gain`, so that A and the FFT
     solver's colour agree (rescaling ``colour_matrices`` afterwards changes only the latter)."""
-    a = build_formation(latent_space(), shape, "GBRG", model=rig_lens_model(), origin=(0, 0))
+    a = build_formation(
+        latent_space(),
+        shape,
+        "GBRG",
+        model=rig_lens_model(),
+        origin=(0, 0),
+        interpolation="bilinear",
+    )
     gain = 1.0 / a.colour_matrix.sum(axis=1).max()
     return build_formation(
-        latent_space(), shape, "GBRG", model=rig_lens_model(), origin=(0, 0), colour_gain=gain
+        latent_space(),
+        shape,
+        "GBRG",
+        model=rig_lens_model(),
+        origin=(0, 0),
+        colour_gain=gain,
+        interpolation="bilinear",
     )

@@ -206,7 +206,7 @@ def test_initial_estimate_is_the_quadratic_optimum_it_promises() -> None:
 
     rng = np.random.default_rng(8)
     model = spectral_model(ConstantField((0.7, -1.3), per_nm=True))
-    a = build_formation(latent_space(), (32, 32), "GBRG", model=model)
+    a = build_formation(latent_space(), (32, 32), "GBRG", model=model, interpolation="bilinear")
     _, raw = noisy_raw(a, rng)
     free = Problem(a, raw, PRIORS["L2"], (0.05,), False)
     single = solve(free, cg_rtol=1e-10)

@@ -42,7 +42,7 @@ def shifted_nonneg_problem() -> Problem:
     fixed it."""
     rng = np.random.default_rng(8)
     model = spectral_model(ConstantField((0.7, -1.3), per_nm=True))
-    a = build_formation(latent_space(), (32, 32), "GBRG", model=model)
+    a = build_formation(latent_space(), (32, 32), "GBRG", model=model, interpolation="bilinear")
     _, raw = noisy_raw(a, rng)
     return Problem(a, raw, PRIORS["L2"], (0.05,), True)
 
@@ -121,7 +121,9 @@ def test_reconstruct_is_bit_identical_under_one_and_two_blas_threads() -> None:
     space = LatentSpace.spectral(response)
     model = spectral_model(ConstantField((1.5, -1.0), per_nm=True), shape=(64, 96))
     truth = blobs((64, 96), space.channels, rng, count=6)
-    raw = build_formation(space, (64, 96), "GBRG", model=model).forward(truth)
+    raw = build_formation(space, (64, 96), "GBRG", model=model, interpolation="bilinear").forward(
+        truth
+    )
     options = {"cfa": "GBRG", "response": response, "dispersion": model, "patch_px": 48}
     one, two = (under_blas_threads(n, reconstruct, raw, **options) for n in (1, 2))
     assert one.log["patches"]["phi_used"] >= 2

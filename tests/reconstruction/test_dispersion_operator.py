@@ -117,7 +117,9 @@ def test_constant_shift_samples_linear_image_exactly(origin, shape) -> None:
     interpolation reproduces linear functions); border samples are clamped."""
     e = (0.25, -0.5)
     model = spectral_model(ConstantField(e))
-    op = Dispersion(model, np.array([500.0, 650.0]), origin=origin, shape=shape)
+    op = Dispersion(
+        model, np.array([500.0, 650.0]), origin=origin, shape=shape, interpolation="bilinear"
+    )
     rows, cols = op.patch_shape
     xx, yy = grid((rows, cols))
     gx, gy = xx + origin[1], yy + origin[0]  # full-image coordinates
@@ -196,7 +198,7 @@ def test_unknown_interpolation_is_refused() -> None:
 def test_colour_channel_model_shifts_r_and_b_only() -> None:
     """Problem (3.27): channels R, G, B; G (the reference) passes unchanged."""
     model = channel_model({"R": ConstantField((0.5, 0.0)), "B": ConstantField((0.0, 1.0))})
-    op = Dispersion(model, None)
+    op = Dispersion(model, None, interpolation="bilinear")
     assert op.channels == ("R", "G", "B")
     xx, yy = grid(SHAPE)
     image = smooth(xx, yy)
@@ -243,7 +245,7 @@ def test_fitted_lens_model_reproduces_lens_warp(lens_model: DispersionModel) -> 
     for calibration.warp), 2.7e-4 against bilinear sampling at the true positions (model
     error ≈ 1e-3 px); without Φ (identity) 0.50."""
     wavelengths = np.array([420.0, 500.0, 600.0, 680.0])
-    op = Dispersion(lens_model, wavelengths)
+    op = Dispersion(lens_model, wavelengths, interpolation="bilinear")
     xx, yy = grid(LENS_SHAPE)
     latent = np.repeat(smooth(xx, yy)[..., None], len(wavelengths), axis=-1)
     out = op.forward(latent)
@@ -316,7 +318,7 @@ def test_sample_spacing_keeps_consecutive_shifts_small(lens_model: DispersionMod
 def test_from_reference_model_is_refused() -> None:
     model = spectral_model(ConstantField((0.2, 0.1)), direction="from_reference")
     with pytest.raises(DataError, match="--direction to_reference"):
-        Dispersion(model, np.array([500.0]))
+        Dispersion(model, np.array([500.0]), interpolation="bilinear")
 
 
 @pytest.mark.parametrize(
@@ -325,19 +327,27 @@ def test_from_reference_model_is_refused() -> None:
 def test_patch_outside_the_model_image_is_refused(origin, shape) -> None:
     model = spectral_model(ConstantField((0.2, 0.1)))
     with pytest.raises(DataError, match="not inside"):
-        Dispersion(model, np.array([500.0]), origin=origin, shape=shape)
+        Dispersion(model, np.array([500.0]), origin=origin, shape=shape, interpolation="bilinear")
     with pytest.raises(DataError, match="not inside"):
         dispersion_samples(model, (400.0, 700.0), origin=origin, shape=shape, min_count=3)
 
 
 def test_wavelengths_must_match_the_model_kind() -> None:
     with pytest.raises(DataError, match="wavelengths_nm"):
-        Dispersion(spectral_model(ConstantField((0.2, 0.1))), None)
+        Dispersion(spectral_model(ConstantField((0.2, 0.1))), None, interpolation="bilinear")
     with pytest.raises(DataError, match="wavelengths_nm=None"):
-        Dispersion(channel_model({"R": ConstantField((0.5, 0.0))}), np.array([500.0]))
+        Dispersion(
+            channel_model({"R": ConstantField((0.5, 0.0))}),
+            np.array([500.0]),
+            interpolation="bilinear",
+        )
     with pytest.raises(DataError, match="channel"):
-        Dispersion(channel_model({"R": ConstantField((0.5, 0.0))}), None)
-    op = Dispersion(spectral_model(ConstantField((0.2, 0.1))), np.array([500.0, 600.0]))
+        Dispersion(channel_model({"R": ConstantField((0.5, 0.0))}), None, interpolation="bilinear")
+    op = Dispersion(
+        spectral_model(ConstantField((0.2, 0.1))),
+        np.array([500.0, 600.0]),
+        interpolation="bilinear",
+    )
     with pytest.raises(DataError, match="expects shape"):
         op.forward(np.zeros((*SHAPE, 3)))
 

@@ -29,7 +29,9 @@ def spectral_model(field, shape=SHAPE):
 def test_dot_test(with_phi: bool) -> None:
     """⟨A x, y⟩ = ⟨x, Aᵀ y⟩ to 1e-10 with and without Φ (radial field, up to 1.5 px)."""
     model = spectral_model(RadialField(0.05)) if with_phi else None
-    a = build_formation(latent_space(), (24, 36), "GBRG", model=model, origin=(8, 10))
+    a = build_formation(
+        latent_space(), (24, 36), "GBRG", model=model, origin=(8, 10), interpolation="bilinear"
+    )
     assert (a.dispersion is not None) == with_phi
     result = dot_test(a, rng=np.random.default_rng(1))
     assert result.relative_error < 1e-10
@@ -38,7 +40,13 @@ def test_dot_test(with_phi: bool) -> None:
 def test_dispersion_samples_split_the_colour_matrix() -> None:
     """Σ_j C_j equals the dispersion-free colour matrix, and Φ = 0 gives the same raw image."""
     space = latent_space()
-    a = build_formation(space, (20, 30), "RGGB", model=spectral_model(ConstantField((0.0, 0.0))))
+    a = build_formation(
+        space,
+        (20, 30),
+        "RGGB",
+        model=spectral_model(ConstantField((0.0, 0.0))),
+        interpolation="bilinear",
+    )
     np.testing.assert_allclose(a.colour_matrix, space.colour_matrix(), rtol=1e-12)
     x = np.random.default_rng(2).uniform(size=a.domain_shape)
     plain = a.without_dispersion()
@@ -85,7 +93,7 @@ def test_fourier_solver_with_a_uniform_shift_is_exact() -> None:
     """With Φ a uniform (periodic) shift, the per-frequency colour matrices make the solve exact."""
     rng = np.random.default_rng(4)
     model = spectral_model(ConstantField((0.7, -1.3), per_nm=True))
-    a = build_formation(latent_space(), (32, 32), "GBRG", model=model)
+    a = build_formation(latent_space(), (32, 32), "GBRG", model=model, interpolation="bilinear")
     terms = [(0.1, PRIORS["L2"][0])]
     solver = FourierSolver((32, 32), "GBRG", a.fourier_colour(), terms=terms, identity=1e-2)
     x = rng.standard_normal(a.domain_shape)
@@ -106,7 +114,9 @@ def test_fourier_solver_half_quadruples_cover_every_frequency(
     they are the unrefined solves of the impulses (1e-12)."""
     rng = np.random.default_rng(11)
     model = spectral_model(ConstantField((0.7, -1.3), per_nm=True), shape=shape)
-    a = build_formation(latent_space(), shape, "GBRG", model=model if shifted else None)
+    a = build_formation(
+        latent_space(), shape, "GBRG", model=model if shifted else None, interpolation="bilinear"
+    )
     term = PRIORS["L2"][0]
     solver = FourierSolver(shape, "GBRG", a.fourier_colour(), terms=[(0.1, term)], identity=1e-2)
     d = term.difference(a.domain_shape)
@@ -134,7 +144,7 @@ def test_inverse_block_gathers_the_columns_of_the_inverse() -> None:
     rng = np.random.default_rng(4)
     shape = (10, 8)
     model = spectral_model(ConstantField((0.7, -1.3), per_nm=True), shape=shape)
-    a = build_formation(latent_space(), shape, "GBRG", model=model)
+    a = build_formation(latent_space(), shape, "GBRG", model=model, interpolation="bilinear")
     solver = FourierSolver(
         shape, "GBRG", a.fourier_colour(), terms=[(0.1, PRIORS["L2"][0])], identity=1e-2
     )
@@ -162,7 +172,12 @@ def test_fourier_solver_blocks_match_a_direct_inverse(identity: float) -> None:
 
     fourier._LOCAL.clear()
     a = build_formation(
-        latent_space(), (24, 36), "GBRG", model=spectral_model(RadialField(0.05)), origin=(8, 10)
+        latent_space(),
+        (24, 36),
+        "GBRG",
+        model=spectral_model(RadialField(0.05)),
+        origin=(8, 10),
+        interpolation="bilinear",
     )
     terms = [(0.01, PRIORS["L2"][0]), (1e-3, PriorTerm("spectral", 2))]
     solver = FourierSolver((24, 36), "GBRG", a.fourier_colour(), terms=terms, identity=identity)
@@ -184,7 +199,7 @@ def test_patches_with_phi_share_the_priors_inverse() -> None:
     solvers = []
     for shift in [(0.7, -1.3), (-0.4, 0.9)]:
         model = spectral_model(ConstantField(shift, per_nm=True))
-        a = build_formation(latent_space(), (32, 32), "GBRG", model=model)
+        a = build_formation(latent_space(), (32, 32), "GBRG", model=model, interpolation="bilinear")
         solver = FourierSolver((32, 32), "GBRG", a.fourier_colour(), terms=terms, identity=1e-2)
         x = rng.standard_normal(a.domain_shape)
         d = terms[0][1].difference(x.shape)
@@ -246,7 +261,12 @@ def test_mean_translation_operator_is_what_the_fourier_solver_inverts() -> None:
     solver's matrix is 2ÃᵀÃ + βI, and for a uniform periodic shift Ã is A itself."""
     rng = np.random.default_rng(7)
     a = build_formation(
-        latent_space(), (24, 36), "GBRG", model=spectral_model(RadialField(0.05)), origin=(8, 10)
+        latent_space(),
+        (24, 36),
+        "GBRG",
+        model=spectral_model(RadialField(0.05)),
+        origin=(8, 10),
+        interpolation="bilinear",
     )
     x = rng.standard_normal(a.domain_shape)
     y = rng.standard_normal(a.range_shape)
@@ -262,6 +282,7 @@ def test_mean_translation_operator_is_what_the_fourier_solver_inverts() -> None:
         (32, 32),
         "GBRG",
         model=spectral_model(ConstantField((0.7, -1.3), per_nm=True)),
+        interpolation="bilinear",
     )
     x = rng.standard_normal(uniform.domain_shape)
     np.testing.assert_allclose(uniform.translation_forward(x), uniform.forward(x), atol=1e-10)
@@ -327,7 +348,7 @@ def test_each_band_of_a_sensor_map_is_warped_by_its_own_dispersion() -> None:
     space = sensor_map_space()
     model = spectral_model(ConstantField((2.0, 0.0), per_nm=True))
     shape = (24, 36)
-    a = build_formation(space, shape, "GBRG", model=model)
+    a = build_formation(space, shape, "GBRG", model=model, interpolation="bilinear")
     plain = a.without_dispersion()
     rng = np.random.default_rng(4)
     signs = set()

@@ -55,10 +55,10 @@ def grey_raw(shape=SHAPE, colour=(0.3, 0.5, 0.2)) -> np.ndarray:
         ({"correction": "sideways"}, "unknown correction"),
         ({"correction": "warp"}, "needs a dispersion model"),
         ({"interpolation": "lanczos"}, "unknown interpolation"),
-        ({"spectral_smoothness": -1e-3}, "spectral_smoothness must be finite and ≥ 0"),
+        ({"spectral_smoothness": -1e-3}, "spectral_smoothness is -0.001; expected a finite"),
         ({"latent": "colour", "spectral_smoothness": 1e-3}, "applies to latent spectral"),
-        ({"rtol": 1.5}, r"rtol must be a number in \(0, 1\)"),
-        ({"rtol": "1e-4"}, "rtol must be a number"),
+        ({"rtol": 1.5}, r"rtol is 1.5; expected a number in \(0, 1\)"),
+        ({"rtol": "1e-4"}, "rtol is '1e-4'; expected a number"),
     ],
 )
 def test_bad_input_is_refused_early(change: dict, message: str) -> None:
@@ -111,16 +111,17 @@ def test_narrow_band_light_gets_the_thesis_problem_by_default() -> None:
         thesis = reconstruct(narrow, spectral_smoothness=0.0, **settings)
         grey = reconstruct(grey_raw((32, 32)), **settings)
     assert default.log["spectral_smoothness"] == 0.0 and default.log["warnings"] == []
-    assert "10 % away" in default.log["spectral_smoothness_chosen"]
+    sigma = default.log["choices"]["spectral_smoothness"]
+    assert sigma["source"] == "image" and "10 % away" in sigma["reason"]
     # band balance needs σ > 0: it goes with it
-    assert "no band balance" in default.log["spectral_smoothness_chosen"]
+    balance = default.log["choices"]["band_balance"]
+    assert balance["source"] == "follows" and "no band balance" in balance["reason"]
     assert default.log["band_balance"] == 0.0 and grey.log["band_balance"] == 0.5
     assert np.array_equal(default.spectral, thesis.spectral)
-    assert thesis.log["spectral_smoothness_chosen"] is None
-    assert (
-        grey.log["spectral_smoothness"] == SUGGESTED_SMOOTHNESS
-        and grey.log["spectral_smoothness_chosen"] is None
-    )
+    assert thesis.log["choices"]["spectral_smoothness"]["source"] == "given"
+    assert grey.log["spectral_smoothness"] == SUGGESTED_SMOOTHNESS
+    grey_sigma = grey.log["choices"]["spectral_smoothness"]
+    assert grey_sigma["source"] == "default" and grey_sigma["evidence"]["misfit"] < 0.02
     with pytest.warns(NarrowBandWarning, match=r"10 % away .* spectral_smoothness=0") as caught:
         asked = reconstruct(narrow, spectral_smoothness=1e-3, **settings)
     assert len(caught) == 1 and asked.log["warnings"] == [str(caught[0].message)]
@@ -218,7 +219,9 @@ def test_planted_shift_is_undone() -> None:
     space = LatentSpace.spectral(RESPONSE_RGB)
     model = spectral_model(ConstantField((1.5, -1.0), per_nm=True), shape=(64, 64))
     truth = blobs((64, 64), space.channels, rng, count=6)
-    raw = build_formation(space, (64, 64), "GBRG", model=model).forward(truth)
+    raw = build_formation(space, (64, 64), "GBRG", model=model, interpolation="bilinear").forward(
+        truth
+    )
     truth_colour = space.raw_colour(truth)
     from_model = planted_dispersion_model(
         {"spectral": ConstantField((-1.5, 1.0), per_nm=True)},
@@ -355,7 +358,7 @@ def test_local_cluster_of_two_processes_equals_the_local_scheduler() -> None:
     rng = np.random.default_rng(4)
     space = LatentSpace.spectral(RESPONSE_RGB)
     model = spectral_model(ConstantField((0.6, -0.4), per_nm=True), shape=(64, 96))
-    raw = build_formation(space, (64, 96), "GBRG", model=model).forward(
+    raw = build_formation(space, (64, 96), "GBRG", model=model, interpolation="bilinear").forward(
         blobs((64, 96), space.channels, rng)
     )
     settings = {

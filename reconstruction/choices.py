@@ -1,0 +1,446 @@
+"""Every automatic choice of a reconstruction, made in one place (:func:`resolve_choices`).
+
+:class:`~reconstruction.options.ReconstructOptions` holds what the caller asked for, with
+``None`` (or a default) where the caller left a choice to labkit; :class:`Choices` holds
+what is in effect: one :class:`Choice` per setting, with its value, where it came from
+(given, the default, evidence in the image, or following from other choices) and why, in
+words and numbers. :func:`~reconstruction.reconstruct.reconstruct` resolves the options
+once, before any work, logs every choice in ``log.json`` (``choices``), and the layers
+below (:class:`~reconstruction.patches.SolverOptions`,
+:func:`~reconstruction.image_formation.build_formation`,
+:class:`~reconstruction.operators.Dispersion`) take these values explicitly: they have no
+defaults of their own to disagree with.
+
+Every choice can be overridden by giving the option (``reconstruct(..., option=value)``,
+``labkit reconstruct --option VALUE``).
+
+The resolver reads the options through their public fields only (it is called by them, so
+it does not import them).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.optimize import nnls
+
+from labkit.cfa import channel_index
+from reconstruction.band_balance import BAND_BALANCE
+from reconstruction.image_formation import DISCRETE, LatentSpace
+from reconstruction.operators import SpectralGradient
+from reconstruction.problem import SUGGESTED_SMOOTHNESS
+from reconstruction.solvers.admm import default_rtol
+
+SOURCES = {
+    "given": "given",
+    "default": "default",
+    "image": "from the image",
+    "follows": "follows from other choices",
+}
+"""Where a choice's value came from, and how a summary names it."""
+
+SOLVER_PATHS = ("admm", "exact", "direct-or-admm")
+"""How patches are solved: ADMM; the exact active-set method on every patch; or exactly and
+directly where the initial estimate has few values at zero, ADMM elsewhere."""
+
+MIN_PAD_PX = 8
+"""Smallest default patch overlap, px."""
+
+REFERENCE_SMOOTHING = 1e-2
+"""Weight w of (6.1)'s spectral-gradient penalty, relative to ‖C‖² (normalised units)."""
+
+NARROW_BAND_MISFIT = 0.02
+"""Misfit of (6.1)'s smooth fit to the image's mean colour above which the light is taken
+to be narrow-band: the default spectral smoothness then gives way to σ = 0 (logged), and
+an explicit σ > 0 draws a warning. On the simulated rig it lies above the misfit of
+unfiltered light and below that of most of the 10 nm filters; the filters at the ends of
+the camera's response stay below it, because what they pass is mostly leaked broadband
+light."""
+
+
+@dataclass(frozen=True)
+class Choice:
+    """One setting in effect.
+
+    Attributes
+    ----------
+    value
+        The value used (JSON-ready).
+    source : {"given", "default", "image", "follows"}
+        Given by the caller; the default; chosen from evidence in the image; or a
+        consequence of other choices (e.g. the tolerance of the chosen σ).
+    reason : str
+        Why, in words, with the evidence's figures.
+    evidence : mapping
+        The figures the choice rests on (JSON-ready), e.g. a misfit and its threshold.
+    """
+
+    value: Any
+    source: str
+    reason: str
+    evidence: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.source not in SOURCES:
+            raise ValueError(f"unknown choice source {self.source!r}; use one of {list(SOURCES)}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "value": _plain(self.value),
+            "source": self.source,
+            "reason": self.reason,
+            "evidence": {k: _plain(v) for k, v in self.evidence.items()},
+        }
+
+
+@dataclass(frozen=True)
+class ImageFacts:
+    """What the resolver reads off one (normalised) raw image.
+
+    Attributes
+    ----------
+    shape : (rows, cols)
+    colour_mean : ndarray (3,) or None
+        Mean raw value of each CFA channel (None when no choice needs it).
+    smooth_fit : ndarray (n,) or None
+        (6.1)'s smooth non-negative spectrum with that mean colour (:func:`smooth_mean_colour`).
+    misfit : float or None
+        ``‖C s − c‖ / ‖c‖`` of that fit.
+    reach_px : float
+        Largest displacement of the dispersion model over the image, px (0 without Φ).
+    """
+
+    shape: tuple[int, int]
+    colour_mean: np.ndarray | None = None
+    smooth_fit: np.ndarray | None = None
+    misfit: float | None = None
+    reach_px: float = 0.0
+
+
+@dataclass(frozen=True)
+class Choices:
+    """The settings in effect for one reconstruction (:func:`resolve_choices`).
+
+    Index by option name (``choices["spectral_smoothness"]`` is a :class:`Choice`); the
+    properties give the values the solve uses.
+    """
+
+    entries: Mapping[str, Choice]
+    facts: ImageFacts | None = None
+
+    def __getitem__(self, name: str) -> Choice:
+        return self.entries[name]
+
+    def __contains__(self, name: object) -> bool:
+        return name in self.entries
+
+    @property
+    def smoothness(self) -> float:
+        return float(self["spectral_smoothness"].value)
+
+    @property
+    def balance(self) -> float:
+        return float(self["band_balance"].value)
+
+    @property
+    def rtol(self) -> float:
+        return self["rtol"].value
+
+    @property
+    def solver(self) -> str:
+        return self["solver"].value
+
+    @property
+    def exact(self) -> bool:
+        return self.solver == "exact"
+
+    @property
+    def direct(self) -> bool:
+        return self.solver == "direct-or-admm"
+
+    @property
+    def exact_weights(self) -> bool:
+        return bool(self["exact_weights"].value)
+
+    @property
+    def pad_px(self) -> int | None:
+        return self["pad_px"].value if "pad_px" in self else None
+
+    def to_dict(self) -> dict[str, dict[str, Any]]:
+        """Every choice, JSON-ready (``log.json``'s ``choices``)."""
+        return {name: choice.to_dict() for name, choice in self.entries.items()}
+
+    def lines(self, *, sources: tuple[str, ...] = ("image", "default")) -> list[str]:
+        """One line per choice from `sources` (default: those labkit made), for summaries."""
+        return [
+            f"{name} = {_shown(c.value)} ({SOURCES[c.source]}: {c.reason})"
+            for name, c in self.entries.items()
+            if c.source in sources
+        ]
+
+
+def resolve_choices(options: Any, *, facts: ImageFacts | None = None) -> Choices:
+    """Resolve every automatic choice of `options` (a
+    :class:`~reconstruction.options.ReconstructOptions`), with the image's `facts` when
+    given (:func:`image_facts`; without them, the choices that need an image are those
+    made before it is read).
+
+    Returns
+    -------
+    Choices
+        ``bands``, ``spectral_smoothness``, ``band_balance``, ``reference``, ``weights``,
+        ``exact_weights``, ``rtol``, ``solver``, ``correction``, ``interpolation`` and
+        ``extrapolation`` (with a dispersion model), and ``pad_px`` (with `facts`).
+    """
+    o = options
+    entries: dict[str, Choice] = {}
+    entries["bands"] = _bands(o)
+    entries["spectral_smoothness"] = _smoothness(o, facts)
+    smoothness = _number(entries["spectral_smoothness"].value)
+    terms = o.terms
+    entries["band_balance"] = _balance(o, entries["spectral_smoothness"], terms)
+    entries["reference"] = (
+        Choice(None, "default", "the plain problem (3.1); mean-colour is thesis §6.3's variant")
+        if o.reference is None
+        else Choice(o.reference, "given", "as asked")
+    )
+    criterion = o.weights.partition(":")[2] if isinstance(o.weights, str) else "fixed"
+    if isinstance(o.weights, str) and o.weights.startswith("fixed"):
+        criterion = "fixed"
+    entries["weights"] = Choice(
+        o.weights if isinstance(o.weights, str) else list(o.weights),
+        "default" if o.weights == "auto:dmc" else "given",
+        "weights by Algorithm 3 with the thesis' demosaicing criterion"
+        if criterion != "fixed"
+        else "fixed weights",
+        {"criterion": criterion},
+    )
+    l1 = any(t.norm == 1 for t in terms)
+    exact_weights = smoothness > 0 and not l1 and criterion not in ("mdc", "fixed")
+    entries["exact_weights"] = Choice(
+        exact_weights,
+        "follows",
+        "weights scored on exact patch optima (σ > 0, L2-type prior)"
+        if exact_weights
+        else "weights scored on ADMM solves (σ = 0, an L1 term, the MDC or fixed weights)",
+    )
+    entries["rtol"] = (
+        Choice(o.rtol, "given", "as asked")
+        if o.rtol is not None
+        else Choice(
+            default_rtol(smoothness),
+            "follows",
+            "brings each patch within 1e-4 of its optimum"
+            if smoothness > 0
+            else "ADMM's default at σ = 0",
+            {"spectral_smoothness": smoothness},
+        )
+    )
+    entries["solver"] = _solver(o, smoothness, l1)
+    if o.dispersion is not None:
+        entries["correction"] = Choice(
+            o.correction,
+            "default" if o.correction == "model" else "given",
+            "Φ inside the problem (3.1)"
+            if o.correction == "model"
+            else "solve without Φ, then warp (§3.9.2)",
+        )
+        if o.correction == "model":
+            entries["interpolation"] = Choice(
+                o.interpolation,
+                "default" if o.interpolation == "cubic" else "given",
+                "Keys' cubic convolution: shifts without bilinear's blur"
+                if o.interpolation == "cubic"
+                else "bilinear sampling, as the thesis (§3.2.5)",
+            )
+        entries["extrapolation"] = Choice(
+            o.extrapolation,
+            "default" if o.extrapolation == "clamp" else "given",
+            {
+                "clamp": "the model is evaluated inside its calibrated domain only",
+                "refuse": "stop where the model would leave its calibrated domain",
+                "allow": "the fitted function is evaluated outside its domain too",
+            }.get(o.extrapolation, "as asked"),
+        )
+    if facts is not None:
+        entries["pad_px"] = _pad(o, facts)
+    return Choices(entries, facts)
+
+
+def image_facts(
+    y: np.ndarray, options: Any, space: LatentSpace, *, colour_gain: float, reach_px: float
+) -> ImageFacts:
+    """What :func:`resolve_choices` needs from the normalised raw image `y`: the mean colour
+    and (6.1)'s fit to it when a choice or the §6.3 reference uses them, and Φ's reach."""
+    if options.reference != "mean-colour" and _number(_smoothness(options, None).value) == 0:
+        return ImageFacts(tuple(y.shape), reach_px=reach_px)
+    colour_mean = mean_colour(y, options.cfa)
+    fit, misfit = smooth_mean_colour(colour_mean, colour_gain * space.colour_matrix())
+    return ImageFacts(tuple(y.shape), colour_mean, fit, misfit, reach_px)
+
+
+# -- the rules --------------------------------------------------------------------------
+def _bands(o: Any) -> Choice:
+    space = o.space
+    if space.kind == "colour":
+        return Choice(None, "follows", "colour latent image (3.27): R, G, B, no bands")
+    centres = [float(v) for v in space.centres_nm]
+    evidence = {"count": len(centres), "first_nm": centres[0], "last_nm": centres[-1]}
+    if o.bands is not None:
+        return Choice(centres, "given", "as asked", evidence)
+    if space.kernel == DISCRETE:
+        return Choice(centres, "follows", "the response's own bands (a sensor map)", evidence)
+    return Choice(centres, "default", "from the response's bandlimit (§3.3.2)", evidence)
+
+
+def _smoothness(o: Any, facts: ImageFacts | None) -> Choice:
+    if o.spectral_smoothness is not None:
+        return Choice(_number(o.spectral_smoothness), "given", "as asked")
+    if o.latent != "spectral":
+        return Choice(0.0, "follows", "a colour latent image has no wavelength axis")
+    default = Choice(
+        SUGGESTED_SMOOTHNESS,
+        "default",
+        "the smoothest of the spectra the data and the prior cannot tell apart",
+    )
+    if facts is None or facts.misfit is None or facts.colour_mean is None:
+        return default
+    evidence = {"misfit": facts.misfit, "threshold": NARROW_BAND_MISFIT}
+    if looks_narrow_band(facts):
+        return Choice(
+            0.0,
+            "image",
+            f"the image's mean raw colour is {100 * facts.misfit:.0f} % away from that of any "
+            "smooth non-negative spectrum (narrow-band light)",
+            evidence,
+        )
+    return Choice(
+        SUGGESTED_SMOOTHNESS,
+        "default",
+        f"the image's mean raw colour is {100 * facts.misfit:.1f} % from a smooth spectrum's "
+        f"(≤ {100 * NARROW_BAND_MISFIT:g} %: broadband light)",
+        evidence,
+    )
+
+
+def _balance(o: Any, smoothness: Choice, terms: tuple) -> Choice:
+    if o.band_balance is not None:
+        if smoothness.source == "image" and smoothness.value == 0 and o.band_balance:
+            return Choice(
+                0.0,
+                "follows",
+                "no band balance: σ = 0 was chosen from the image and the balance needs σ > 0 "
+                "(give spectral_smoothness to keep both)",
+                {"given": _number(o.band_balance)},
+            )
+        return Choice(_number(o.band_balance), "given", "as asked")
+    if o.latent != "spectral":
+        return Choice(0.0, "follows", "a colour latent image has no bands to balance")
+    if smoothness.value == 0:
+        return Choice(0.0, "follows", "no band balance at σ = 0 (it needs σ > 0)")
+    if not any(t.guided for t in terms):
+        return Choice(0.0, "default", f"every band alike with the {o.prior} prior")
+    return Choice(
+        BAND_BALANCE, "default", "weakly sensed bands keep their edges (EdgeL2 with σ > 0)"
+    )
+
+
+def _solver(o: Any, smoothness: float, l1: bool) -> Choice:
+    if o.exact:
+        return Choice("exact", "given", "every patch by the exact active-set method")
+    if o.exact is None and smoothness > 0 and o.nonneg and not l1:
+        return Choice(
+            "direct-or-admm",
+            "follows",
+            "patches with few values at zero exactly and directly, the others by ADMM "
+            "(σ > 0, non-negative, L2-type prior)",
+        )
+    why = "σ = 0" if smoothness == 0 else "an L1 term" if l1 else "signed" if not o.nonneg else ""
+    return Choice("admm", "follows" if o.exact is None else "given", f"ADMM ({why or 'as asked'})")
+
+
+def _pad(o: Any, facts: ImageFacts) -> Choice:
+    reach = facts.reach_px
+    evidence = {"reach_px": reach}
+    if o.pad_px is not None:
+        return Choice(o.pad_px, "given", "as asked", evidence)
+    pad = max(MIN_PAD_PX, 2 * math.ceil(reach))
+    pad += pad % 2
+    return Choice(
+        pad,
+        "image" if pad > MIN_PAD_PX else "default",
+        f"≥ twice Φ's largest displacement ({reach:.1f} px) and ≥ {MIN_PAD_PX}",
+        evidence,
+    )
+
+
+# -- evidence ---------------------------------------------------------------------------
+def looks_narrow_band(facts: ImageFacts | None) -> bool:
+    """The image's mean colour is more than :data:`NARROW_BAND_MISFIT` away from that of any
+    smooth non-negative spectrum (a non-positive channel mean has no colour to judge)."""
+    if facts is None or facts.misfit is None or facts.colour_mean is None:
+        return False
+    return bool(np.all(facts.colour_mean > 0)) and facts.misfit > NARROW_BAND_MISFIT
+
+
+def mean_colour(raw: np.ndarray, cfa: str) -> np.ndarray:
+    """Mean raw value of each CFA channel (R, G, B)."""
+    index = channel_index(cfa, raw.shape)
+    return np.array([raw[index == c].mean() for c in range(3)])
+
+
+def smooth_mean_colour(colour_mean: np.ndarray, colour: np.ndarray) -> tuple[np.ndarray, float]:
+    """(6.1): a smooth non-negative spectrum s with the image's mean colour, and its misfit.
+
+    Solves ``argmin_s ‖C s − c‖² + w‖∇λ s‖², s ≥ 0`` with c = `colour_mean` (the mean raw
+    colour, :func:`mean_colour`) and w = :data:`REFERENCE_SMOOTHING`·‖C‖², by NNLS on the
+    stacked system. Returns s and ``‖C s − c‖ / ‖c‖`` (0 when c is black).
+    """
+    n = colour.shape[1]
+    if n == 3 and np.allclose(colour, np.diag(np.diag(colour))):
+        s = np.maximum(colour_mean / np.diag(colour), 0.0)
+    else:
+        d = SpectralGradient((1, 1, n)).spectral_matrix
+        w = REFERENCE_SMOOTHING * float(np.sum(colour**2))
+        s, _ = nnls(
+            np.vstack([colour, np.sqrt(w) * d]), np.concatenate([colour_mean, np.zeros(n - 1)])
+        )
+    size = float(np.linalg.norm(colour_mean))
+    misfit = float(np.linalg.norm(colour @ s - colour_mean)) / size if size > 0 else 0.0
+    return s, misfit
+
+
+def reference_scale(spectrum: np.ndarray) -> np.ndarray:
+    """Per-channel scale r of §6.3 from :func:`smooth_mean_colour`'s spectrum: scaled to
+    mean 1 and floored at 1 % of its peak, so every channel keeps a positive scale."""
+    if not np.any(spectrum > 0):
+        return np.ones(spectrum.size)
+    s = np.maximum(spectrum, 0.01 * spectrum.max())
+    return s / s.mean()
+
+
+def _number(value: Any) -> float:
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, (tuple, np.ndarray)):
+        return [_plain(v) for v in value]
+    return value
+
+
+def _shown(value: Any) -> str:
+    if isinstance(value, float):
+        return f"{value:g}"
+    if isinstance(value, list) and value and all(isinstance(v, float) for v in value):
+        return f"{len(value)} values {value[0]:g}…{value[-1]:g}"
+    return str(value)
