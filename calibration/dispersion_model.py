@@ -24,7 +24,7 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Literal, Protocol
+from typing import Any, ClassVar, Literal, Protocol
 
 import numpy as np
 import yaml
@@ -62,10 +62,58 @@ class DisplacementField(Protocol):
         ...
 
 
+@dataclass(frozen=True)
+class ShiftedField:
+    """A field seen from a window of its image: evaluated `offset_xy` px further on.
+
+    A model calibrated on the whole sensor, used on a crop of it
+    (:meth:`DispersionModel.cropped`): the crop's pixel (x, y) is the sensor's
+    (x + offset_x, y + offset_y).
+    """
+
+    kind: ClassVar[str] = "shifted"
+    inner: DisplacementField
+    offset_xy: tuple[float, float]
+
+    def evaluate(self, points: np.ndarray) -> np.ndarray:
+        moved = np.array(points, dtype=np.float64, copy=True)
+        moved[:, 0] += self.offset_xy[0]
+        moved[:, 1] += self.offset_xy[1]
+        return self.inner.evaluate(moved)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "kind": self.kind,
+            "offset_xy": [float(self.offset_xy[0]), float(self.offset_xy[1])],
+            "field": self.inner.to_dict(),
+        }
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any], where: str) -> ShiftedField:
+        offset = data.get("offset_xy")
+        if (
+            not isinstance(offset, list)
+            or len(offset) != 2
+            or not all(isinstance(v, int | float) and np.isfinite(v) for v in offset)
+        ):
+            raise ConfigError(f"{where}.offset_xy must be [x, y] in px, got {offset!r}")
+        inner = data.get("field")
+        if not isinstance(inner, Mapping):
+            raise ConfigError(f"{where}.field must be a mapping (the sensor's field)")
+        reader = FIELD_READERS.get(inner.get("kind"))
+        if reader is None:
+            raise ConfigError(
+                f"{where}.field: unknown field kind {inner.get('kind')!r}; known: "
+                f"{', '.join(FIELD_READERS)}"
+            )
+        return cls(reader(inner, f"{where}.field"), (float(offset[0]), float(offset[1])))
+
+
 #: Field readers by kind (the ``kind`` key of each field in a model file).
 FIELD_READERS: dict[str, Callable[[Mapping[str, Any], str], DisplacementField]] = {
     PolynomialField.kind: PolynomialField.from_dict,
     SplineField.kind: SplineField.from_dict,
+    ShiftedField.kind: ShiftedField.from_dict,
 }
 
 
@@ -127,6 +175,43 @@ class DispersionModel:
         as fitted (``"allow"``)."""
         check_extrapolation(policy)
         return replace(self, extrapolation="allow" if policy == "allow" else "clamp")
+
+    def cropped(self, origin: tuple[int, int], shape: tuple[int, int]) -> DispersionModel:
+        """This model on the `shape` (rows, cols) px window of its image at `origin`
+        (row, col): the displacement at the window's pixel (x, y) is the sensor's at
+        (x + col, y + row), the calibrated region moves with it, and the window is
+        recorded in ``provenance.crop``. Saved and read like any model.
+
+        Raises
+        ------
+        DataError
+            The window does not lie inside the model's image.
+        """
+        r0, c0 = (int(v) for v in origin)
+        rows, cols = (int(v) for v in shape)
+        full_rows, full_cols = self.image_shape
+        inside = min(r0, c0) >= 0 and min(rows, cols) >= 1
+        if not inside or r0 + rows > full_rows or c0 + cols > full_cols:
+            raise DataError(
+                f"crop window at (row, col) = ({r0}, {c0}) of {rows}×{cols} px does not lie "
+                f"inside the model's {full_rows}×{full_cols} px image"
+            )
+        offset = (float(c0), float(r0))
+        fields = {name: ShiftedField(f, offset) for name, f in self.fields.items()}
+        region = replace(self.region, hull_xy=self.region.hull_xy - np.array(offset))
+        crop = {"origin": [r0, c0], "shape": [rows, cols], "image_shape": [full_rows, full_cols]}
+        earlier = self.provenance.get("crop")
+        if isinstance(earlier, Mapping):  # a crop of a crop: the origin on the sensor
+            first = earlier.get("origin", [0, 0])
+            crop = {**crop, "origin": [r0 + first[0], c0 + first[1]],
+                    "image_shape": earlier.get("image_shape")}  # fmt: skip
+        return replace(
+            self,
+            image_shape=(rows, cols),
+            fields=fields,
+            region=region,
+            provenance={**self.provenance, "crop": crop},
+        )
 
     @property
     def channels(self) -> list[str]:

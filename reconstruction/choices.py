@@ -39,7 +39,7 @@ SOURCES = {
     "given": "given",
     "default": "default",
     "image": "from the image",
-    "follows": "follows from other choices",
+    "follows": "follows from the inputs and the other choices",
 }
 """Where a choice's value came from, and how a summary names it."""
 
@@ -52,14 +52,6 @@ MIN_PAD_PX = 8
 
 REFERENCE_SMOOTHING = 1e-2
 """Weight w of (6.1)'s spectral-gradient penalty, relative to ‖C‖² (normalised units)."""
-
-NARROW_BAND_MISFIT = 0.02
-"""Misfit of (6.1)'s smooth fit to the image's mean colour above which the light is taken
-to be narrow-band: the default spectral smoothness then gives way to σ = 0 (logged), and
-an explicit σ > 0 draws a warning. On the simulated rig it lies above the misfit of
-unfiltered light and below that of most of the 10 nm filters; the filters at the ends of
-the camera's response stay below it, because what they pass is mostly leaked broadband
-light."""
 
 
 @dataclass(frozen=True)
@@ -203,11 +195,7 @@ def resolve_choices(options: Any, *, facts: ImageFacts | None = None) -> Choices
     smoothness = _number(entries["spectral_smoothness"].value)
     terms = o.terms
     entries["band_balance"] = _balance(o, entries["spectral_smoothness"], terms)
-    entries["reference"] = (
-        Choice(None, "default", "the plain problem (3.1); mean-colour is thesis §6.3's variant")
-        if o.reference is None
-        else Choice(o.reference, "given", "as asked")
-    )
+    entries["reference"] = _reference(o)
     criterion = o.weights.partition(":")[2] if isinstance(o.weights, str) else "fixed"
     if isinstance(o.weights, str) and o.weights.startswith("fixed"):
         criterion = "fixed"
@@ -242,30 +230,10 @@ def resolve_choices(options: Any, *, facts: ImageFacts | None = None) -> Choices
     )
     entries["solver"] = _solver(o, smoothness, l1)
     if o.dispersion is not None:
-        entries["correction"] = Choice(
-            o.correction,
-            "default" if o.correction == "model" else "given",
-            "Φ inside the problem (3.1)"
-            if o.correction == "model"
-            else "solve without Φ, then warp (§3.9.2)",
-        )
+        entries["correction"] = _named(o.correction, "model", CORRECTION_REASONS)
         if o.correction == "model":
-            entries["interpolation"] = Choice(
-                o.interpolation,
-                "default" if o.interpolation == "cubic" else "given",
-                "Keys' cubic convolution: shifts without bilinear's blur"
-                if o.interpolation == "cubic"
-                else "bilinear sampling, as the thesis (§3.2.5)",
-            )
-        entries["extrapolation"] = Choice(
-            o.extrapolation,
-            "default" if o.extrapolation == "clamp" else "given",
-            {
-                "clamp": "the model is evaluated inside its calibrated domain only",
-                "refuse": "stop where the model would leave its calibrated domain",
-                "allow": "the fitted function is evaluated outside its domain too",
-            }.get(o.extrapolation, "as asked"),
-        )
+            entries["interpolation"] = _named(o.interpolation, "cubic", INTERPOLATION_REASONS)
+        entries["extrapolation"] = _named(o.extrapolation, "clamp", EXTRAPOLATION_REASONS)
     if facts is not None:
         entries["pad_px"] = _pad(o, facts)
     return Choices(entries, facts)
@@ -276,7 +244,8 @@ def image_facts(
 ) -> ImageFacts:
     """What :func:`resolve_choices` needs from the normalised raw image `y`: the mean colour
     and (6.1)'s fit to it when a choice or the §6.3 reference uses them, and Φ's reach."""
-    if options.reference != "mean-colour" and _number(_smoothness(options, None).value) == 0:
+    reference = _reference(options).value
+    if reference != "mean-colour" and _number(_smoothness(options, None).value) == 0:
         return ImageFacts(tuple(y.shape), reach_px=reach_px)
     colour_mean = mean_colour(y, options.cfa)
     fit, misfit = smooth_mean_colour(colour_mean, colour_gain * space.colour_matrix())
@@ -284,6 +253,26 @@ def image_facts(
 
 
 # -- the rules --------------------------------------------------------------------------
+CORRECTION_REASONS = {
+    "model": "Φ inside the problem (3.1)",
+    "warp": "solve without Φ, then warp (§3.9.2)",
+}
+INTERPOLATION_REASONS = {
+    "cubic": "Keys' cubic convolution: shifts without bilinear's blur",
+    "bilinear": "bilinear sampling, as the thesis (§3.2.5)",
+}
+EXTRAPOLATION_REASONS = {
+    "clamp": "the model is evaluated inside its calibrated domain only",
+    "refuse": "stop where the model would leave its calibrated domain",
+    "allow": "the fitted function is evaluated outside its domain too",
+}
+
+
+def _named(value: str, default: str, reasons: Mapping[str, str]) -> Choice:
+    """A named option's choice: the default or given, with the reason its name carries."""
+    return Choice(value, "default" if value == default else "given", reasons.get(value, "as asked"))
+
+
 def _bands(o: Any) -> Choice:
     space = o.space
     if space.kind == "colour":
@@ -298,45 +287,53 @@ def _bands(o: Any) -> Choice:
 
 
 def _smoothness(o: Any, facts: ImageFacts | None) -> Choice:
+    evidence = {} if facts is None or facts.misfit is None else {"mean_colour_misfit": facts.misfit}
     if o.spectral_smoothness is not None:
-        return Choice(_number(o.spectral_smoothness), "given", "as asked")
+        return Choice(_number(o.spectral_smoothness), "given", "as asked", evidence)
     if o.latent != "spectral":
         return Choice(0.0, "follows", "a colour latent image has no wavelength axis")
-    default = Choice(
-        SUGGESTED_SMOOTHNESS,
-        "default",
-        "the smoothest of the spectra the data and the prior cannot tell apart",
-    )
-    if facts is None or facts.misfit is None or facts.colour_mean is None:
-        return default
-    evidence = {"misfit": facts.misfit, "threshold": NARROW_BAND_MISFIT}
-    if looks_narrow_band(facts):
-        return Choice(
-            0.0,
-            "image",
-            f"the image's mean raw colour is {100 * facts.misfit:.0f} % away from that of any "
-            "smooth non-negative spectrum (narrow-band light)",
-            evidence,
-        )
+    # no switch to σ = 0 for light that looks narrow-band: on the validation matrix σ > 0
+    # gave the lower spectral error on every row, narrow-band light included (docs: choices)
     return Choice(
         SUGGESTED_SMOOTHNESS,
         "default",
-        f"the image's mean raw colour is {100 * facts.misfit:.1f} % from a smooth spectrum's "
-        f"(≤ {100 * NARROW_BAND_MISFIT:g} %: broadband light)",
+        "the smoothest of the spectra the data and the prior cannot tell apart",
         evidence,
     )
 
 
+def _reference(o: Any) -> Choice:
+    if o.reference != "auto":
+        return Choice(o.reference, "given", "as asked")
+    if o.latent != "spectral":
+        return Choice(None, "follows", "a colour latent image: the plain problem (3.27)")
+    green = unlevelled_green(o.space)
+    if green is not None:
+        return Choice(
+            "mean-colour",
+            "follows",
+            "the response leaves the bands' scales unknown (a sensor map with the same G in "
+            "every band, the thesis' normalisation), so the bands are put on one scale by a "
+            "smooth spectrum with the image's mean colour (§6.3)",
+            {"green_per_band": green},
+        )
+    return Choice(None, "default", "the response gives the bands' scales: the plain problem (3.1)")
+
+
+def unlevelled_green(space: LatentSpace) -> float | None:
+    """The G value every band of a sensor map shares (the thesis' normalisation, which
+    leaves the bands' relative scales unknown), or None: a response with G levels per band,
+    or one that is not a sensor map."""
+    if space.kind != "spectral" or space.kernel != DISCRETE:
+        return None
+    green = space.colour_matrix()[1]
+    if green.size < 2 or not np.allclose(green, green[0], rtol=1e-6, atol=0.0):
+        return None
+    return float(green[0])
+
+
 def _balance(o: Any, smoothness: Choice, terms: tuple) -> Choice:
     if o.band_balance is not None:
-        if smoothness.source == "image" and smoothness.value == 0 and o.band_balance:
-            return Choice(
-                0.0,
-                "follows",
-                "no band balance: σ = 0 was chosen from the image and the balance needs σ > 0 "
-                "(give spectral_smoothness to keep both)",
-                {"given": _number(o.band_balance)},
-            )
         return Choice(_number(o.band_balance), "given", "as asked")
     if o.latent != "spectral":
         return Choice(0.0, "follows", "a colour latent image has no bands to balance")
@@ -379,14 +376,6 @@ def _pad(o: Any, facts: ImageFacts) -> Choice:
 
 
 # -- evidence ---------------------------------------------------------------------------
-def looks_narrow_band(facts: ImageFacts | None) -> bool:
-    """The image's mean colour is more than :data:`NARROW_BAND_MISFIT` away from that of any
-    smooth non-negative spectrum (a non-positive channel mean has no colour to judge)."""
-    if facts is None or facts.misfit is None or facts.colour_mean is None:
-        return False
-    return bool(np.all(facts.colour_mean > 0)) and facts.misfit > NARROW_BAND_MISFIT
-
-
 def mean_colour(raw: np.ndarray, cfa: str) -> np.ndarray:
     """Mean raw value of each CFA channel (R, G, B)."""
     index = channel_index(cfa, raw.shape)

@@ -30,8 +30,9 @@ CORRECTIONS = ("model", "warp")
 LATENTS = ("spectral", "colour")
 """What is estimated: the spectral image (3.1), or the colour image directly (3.27)."""
 
-REFERENCES = ("mean-colour",)
-"""Reference spectra of the §6.3 variant (None: the plain problem)."""
+REFERENCES = ("auto", "mean-colour")
+"""Reference spectra of the §6.3 variant: ``"auto"`` (the mean-colour reference where the
+response leaves the bands' scales unknown), ``"mean-colour"`` (None: the plain problem)."""
 
 NONE_TEXT = "none"
 """How a flag spells an option's None (e.g. ``--reference none``)."""
@@ -247,8 +248,7 @@ OPTION_TABLE: tuple[OptionSpec, ...] = (
         least=0.0,
         optional=True,
         metavar="SIGMA",
-        default_help="1e-3 with --latent spectral, 0 with --latent colour or when the image "
-        "itself shows narrow-band light (printed and logged with its evidence)",
+        default_help="1e-3 with --latent spectral, 0 with --latent colour",
         example="1e-3",
     ),
     OptionSpec(
@@ -290,10 +290,12 @@ OPTION_TABLE: tuple[OptionSpec, ...] = (
         "--reference",
         "choice",
         "mean-colour: reconstruct relative to a smooth spectrum fitted to the image's mean "
-        "colour (thesis §6.3); none: the plain problem",
+        "colour (thesis §6.3), which puts the bands on one scale; none: the plain problem; "
+        "auto: mean-colour where the response leaves the bands' scales unknown (a sensor map "
+        "with the same G in every band, the thesis' normalisation), else none",
         choices=REFERENCES,
         optional=True,
-        metavar="mean-colour|none",
+        metavar="auto|mean-colour|none",
     ),
     OptionSpec(
         "kernel",

@@ -33,7 +33,6 @@ from reconstruction.band_balance import balance_terms, band_factors
 from reconstruction.choices import (
     Choices,
     image_facts,
-    looks_narrow_band,
     reference_scale,
     resolve_choices,
 )
@@ -61,11 +60,6 @@ and raw-colour outputs are float32 (largest finite 3.4e38, smallest normal 1.2e-
 class DomainWarning(UserWarning):
     """The dispersion model is used outside the domain it was calibrated on (clamped, or
     extrapolated with ``extrapolation="allow"``); the log's ``dispersion.domain`` says where."""
-
-
-class NarrowBandWarning(UserWarning):
-    """The image's light looks narrow-band while a spectral smoothness term was asked for
-    (left to the default, σ is 0 for such images instead)."""
 
 
 def check_raw(raw: np.ndarray, *, where: str = "the raw image") -> np.ndarray:
@@ -258,19 +252,11 @@ def prepare_problem(
     patches = PatchOptions(
         patch_px=o.patch_px, pad_px=pad_px, flat_threshold=o.flat_threshold, noise_sigma=noise
     )
-    if o.reference == "mean-colour":
+    reference = choices["reference"].value
+    if reference == "mean-colour":
         space = space.with_scale(reference_scale(facts.smooth_fit))
     smoothness = choices.smoothness
     notices = []
-    given = choices["spectral_smoothness"].source == "given"
-    if given and smoothness > 0 and looks_narrow_band(facts):
-        notices.append(
-            f"the image's mean raw colour is {100 * facts.misfit:.0f} % away from that of any "
-            "smooth non-negative spectrum: narrow-band light? The spectral smoothness "
-            f"term (σ = {smoothness:g}) biases such colours; give spectral_smoothness=0 "
-            "(--spectral-smoothness 0) for the thesis' problem, or leave it to the default"
-        )
-        warnings.warn(notices[-1], NarrowBandWarning, stacklevel=4)
     if domain is not None and domain.outside:
         notices.append(domain.message())
         warnings.warn(notices[-1], DomainWarning, stacklevel=4)
@@ -293,7 +279,7 @@ def prepare_problem(
         "exact": choices.exact,
         "direct": choices.direct,
         "rtol": choices.rtol,
-        "reference": o.reference,
+        "reference": reference,
         "patch_px": o.patch_px,
         "pad_px": pad_px,
         "flat_threshold": o.flat_threshold,

@@ -13,6 +13,7 @@ from labkit.bench.harness import (
     write_report,
 )
 from labkit.bench.hdr import bench_hdr
+from labkit.bench.matrix import bench_matrix
 from labkit.bench.reconstruct import bench_reconstruct
 from labkit.bench.sim import bench_sim
 from labkit.bench.solver import bench_solver
@@ -26,6 +27,7 @@ BENCHMARKS = {
     "calibrate": bench_calibrate,
     "reconstruct": bench_reconstruct,
     "solver": bench_solver,
+    "matrix": bench_matrix,
 }
 
 __all__ = [
@@ -36,6 +38,7 @@ __all__ = [
     "bench_calibrate",
     "bench_capture",
     "bench_hdr",
+    "bench_matrix",
     "bench_reconstruct",
     "bench_sim",
     "bench_solver",

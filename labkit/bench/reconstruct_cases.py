@@ -61,21 +61,33 @@ def lens_model(lens, *, reference_nm: float = 600.0):
 
 
 def simulated_case(
-    rig_path: Path, shape: tuple[int, int], scene: str, *, seed: int = 1, flat_fraction: float = 0
+    rig_path: Path,
+    shape: tuple[int, int],
+    scene: str,
+    *,
+    seed: int = 1,
+    flat_fraction: float = 0,
+    illumination: str = "unfiltered",
+    max_shift_px: float | None = None,
 ) -> dict[str, Any]:
     """Raw image, dispersion model and ground truth of one simulated scene.
 
     `flat_fraction` > 0 replaces that fraction of the columns (on the right) by a flat grey
-    wall, for the adaptive-skipping comparison.
+    wall, for the adaptive-skipping comparison. `illumination` names the light (a filter
+    of the rig's slider for narrow-band light); `max_shift_px` replaces the lens' largest
+    lateral chromatic aberration (px, corners, 400–700 nm).
     """
     from labkit.cfa import mosaic
     from labkit.sim import SimulatedRig
     from labkit.sim.truth import colour_truth, spectral_truth
 
     rig = load_rig(rig_path)
+    if max_shift_px is not None:
+        lens = rig.sim.lens.model_copy(update={"max_shift_px": float(max_shift_px)})
+        rig = rig.model_copy(update={"sim": rig.sim.model_copy(update={"lens": lens})})
     world = SimulatedRig(rig, shape=shape)
-    colour = colour_truth(world, scene)
-    irradiance = world.irradiance(scene, "unfiltered").astype(np.float64)
+    colour = colour_truth(world, scene, illumination=illumination)
+    irradiance = world.irradiance(scene, illumination).astype(np.float64)
     wall = np.zeros(shape, dtype=bool)
     if flat_fraction > 0:
         first = round(shape[1] * (1 - flat_fraction) / 2) * 2
@@ -90,11 +102,13 @@ def simulated_case(
 
     def truth(bands_nm: np.ndarray) -> np.ndarray:
         """Reflectance × band-averaged light at `bands_nm` (rows, cols, n), raw units."""
-        cube = spectral_truth(world, scene, bands_nm, scale=exposure)
+        cube = spectral_truth(world, scene, bands_nm, illumination=illumination, scale=exposure)
         cube[wall] = np.nan  # the grey wall has no spectral truth
         return cube
 
     case = {
+        "scene": scene,
+        "illumination": illumination,
         "raw": raw,
         "cfa": rig.cfa,
         "response": world.response,

@@ -1,6 +1,7 @@
-"""``labkit dispersion show MODEL.yaml`` and ``labkit dispersion eval MODEL.yaml --x … --y …``:
-inspect a dispersion model — what it is, the domain it was calibrated on, and its
-displacement at given points."""
+"""``labkit dispersion show MODEL.yaml``, ``labkit dispersion eval MODEL.yaml --x … --y …``
+and ``labkit dispersion crop MODEL.yaml --origin ROW,COL --shape ROWS,COLS --out CROP.yaml``:
+inspect a dispersion model — what it is, the domain it was calibrated on, its displacement
+at given points — and move a whole sensor's model to a crop of its images."""
 
 from __future__ import annotations
 
@@ -51,6 +52,53 @@ def register(commands: argparse._SubParsersAction) -> None:
     evaluate.add_argument("--channel", default=None, help="R or B (colour-channel models)")
     add_extrapolation_option(evaluate)
     evaluate.set_defaults(handler=_eval)
+    crop = actions.add_parser(
+        "crop",
+        help="the model of a whole sensor, moved to a crop of its images",
+        description="Write the model for raw images cropped from the calibrated ones: the "
+        "displacement at the crop's pixel (x, y) is the sensor's at (x + COL, y + ROW), and "
+        "the calibrated domain moves with it (use the crop's origin on the sensor; keep it "
+        "even so that the crop keeps the Bayer phase). The crop is recorded in the model's "
+        "provenance; reconstruct, correct and evaluate then take the cropped raw images.",
+    )
+    crop.add_argument("model", type=Path, help="dispersion model YAML of the whole sensor")
+    crop.add_argument(
+        "--origin", required=True, metavar="ROW,COL", help="the crop's top-left pixel, px"
+    )
+    crop.add_argument("--shape", required=True, metavar="ROWS,COLS", help="the crop's size, px")
+    crop.add_argument("--out", type=Path, required=True, help="the cropped model's YAML file")
+    crop.set_defaults(handler=_crop)
+
+
+def _pair(text: str, option: str) -> tuple[int, int]:
+    from labkit.errors import ConfigError
+
+    parts = text.split(",")
+    try:
+        values = tuple(int(p) for p in parts)
+    except ValueError:
+        values = ()
+    if len(values) != 2 or min(values) < 0:
+        raise ConfigError(f"{option} is {text!r}; expected two whole numbers ≥ 0, e.g. 100,200")
+    return values[0], values[1]
+
+
+def _crop(args: argparse.Namespace) -> int:
+    from calibration.dispersion_model import load_dispersion_model
+    from labkit.errors import ConfigError
+
+    origin, shape = _pair(args.origin, "--origin"), _pair(args.shape, "--shape")
+    if args.out.resolve() == args.model.resolve():
+        raise ConfigError(f"--out {args.out} is the input model; give another file")
+    model = load_dispersion_model(args.model)
+    cropped = model.cropped(origin, shape)
+    cropped.save(args.out)
+    rows, cols = model.image_shape
+    print(
+        f"wrote {args.out}: {args.model} ({cols}×{rows} px) on the {shape[1]}×{shape[0]} px "
+        f"crop at (row, col) = {origin}"
+    )
+    return 0
 
 
 def _eval(args: argparse.Namespace) -> int:
@@ -137,6 +185,10 @@ def _show(args: argparse.Namespace) -> int:
         reference = f"{reference:.1f} nm"
     print(f"  direction    {model.direction}, reference {reference}")
     print(f"  image        {cols}×{rows} px (width × height)")
+    crop = model.provenance.get("crop")
+    if isinstance(crop, dict):
+        print(f"  crop         of the sensor's {crop.get('image_shape')} px images (rows, cols) "
+              f"at (row, col) = {crop.get('origin')}")  # fmt: skip
     print(f"  domain       {_domain_text(model.region)}")
     use = domain_use(model, policy="allow")
     print(

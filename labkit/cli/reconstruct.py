@@ -164,10 +164,9 @@ def _run(args: argparse.Namespace, job: _Job) -> int:
         print(f"choosing weights ({weights}, Algorithm 3)…", file=sys.stderr)
     try:
         from reconstruction import reconstruct
-        from reconstruction.reconstruct import DomainWarning, NarrowBandWarning
+        from reconstruction.reconstruct import DomainWarning
 
         with warnings.catch_warnings():  # the summary prints them from the log
-            warnings.simplefilter("ignore", NarrowBandWarning)
             warnings.simplefilter("ignore", DomainWarning)
             result = reconstruct(job.raw.raw, job.options, progress=bar.update)
     except OSError as error:

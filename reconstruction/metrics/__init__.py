@@ -35,10 +35,15 @@ population covariances, K1 = 0.01, K2 = 0.03; the dynamic range L defaults to th
 peak-to-peak range of the true image over all bands (so every band is compared on one
 scale). SSIM is computed on whole images; with a mask, its map is averaged over the
 masked pixels (without one, skimage's mean leaves out the 5-px border).
+
+Residual lateral chromatic aberration on a disk-chart image (:func:`disk_channel_offsets`):
+the R−G and B−G offsets of the calibration-disk centres, fitted per colour channel with
+:mod:`calibration.disks`, px RMS over the disks.
 """
 
 from reconstruction.metrics._inputs import BLOCK_PIXELS, RELATIVE_FLOOR, SAFE_MAGNITUDE
 from reconstruction.metrics.colour import ColourErrors, colour_errors
+from reconstruction.metrics.disk_offsets import DiskOffsets, disk_channel_offsets
 from reconstruction.metrics.registration import patch_weights, registration_scale
 from reconstruction.metrics.spectral import SpectralErrors, spectral_errors
 
@@ -47,8 +52,10 @@ __all__ = [
     "RELATIVE_FLOOR",
     "SAFE_MAGNITUDE",
     "ColourErrors",
+    "DiskOffsets",
     "SpectralErrors",
     "colour_errors",
+    "disk_channel_offsets",
     "patch_weights",
     "registration_scale",
     "spectral_errors",

@@ -189,3 +189,38 @@ def test_positions_beyond_the_margin_matter_only_when_the_field_changes_there() 
     assert use.area_outside > 0 and use.spatial_effect_px == 0.0
     assert not use.outside and use.message() is None
     domain_use(model, wavelengths_nm=[500.0, 600.0], policy="refuse")  # nothing to refuse
+
+
+def test_a_cropped_model_is_the_sensor_model_at_the_crops_place(tmp_path) -> None:
+    """A model of the whole sensor used on a crop: at the crop's pixel (x, y) it gives the
+    sensor's displacement at (x + col, y + row), its region moves with it, and it survives a
+    save and load; a window outside the image is refused."""
+    from _helpers import lens_model_file
+
+    from calibration.dispersion_model import load_dispersion_model
+
+    sensor = load_dispersion_model(lens_model_file(tmp_path / "lens.yaml", (96, 128)))
+    crop = sensor.cropped((20, 34), (48, 64))
+    assert crop.image_shape == (48, 64)
+    assert crop.provenance["crop"] == {"origin": [20, 34], "shape": [48, 64],
+                                       "image_shape": [96, 128]}  # fmt: skip
+    yy, xx = np.mgrid[0:48:7, 0:64:9].astype(float)
+    for wave in (450.0, 520.0, 650.0):
+        np.testing.assert_array_equal(
+            np.stack(crop.displacement(xx, yy, wave)),
+            np.stack(sensor.displacement(xx + 34, yy + 20, wave)),
+        )
+    np.testing.assert_array_equal(crop.region.hull_xy, sensor.region.hull_xy - [34, 20])
+    crop.save(tmp_path / "crop.yaml")
+    again = load_dispersion_model(tmp_path / "crop.yaml")
+    np.testing.assert_array_equal(
+        np.stack(again.displacement(xx, yy, 500.0)), np.stack(crop.displacement(xx, yy, 500.0))
+    )
+    # clamping uses the moved region: a crop pixel maps to the sensor's clamped value
+    clamped = crop.within_domain("clamp")
+    np.testing.assert_allclose(
+        np.stack(clamped.displacement(xx, yy, 700.0)),
+        np.stack(sensor.within_domain("clamp").displacement(xx + 34, yy + 20, 700.0)),
+    )
+    with pytest.raises(DataError, match="does not lie inside the model's 96×128 px image"):
+        sensor.cropped((60, 0), (48, 64))

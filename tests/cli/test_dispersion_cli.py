@@ -88,6 +88,27 @@ def test_calibrate_dispersion_eval_and_warp(hdr_folder, tmp_path: Path, capsys):
     assert "one keypoint spacing" in shown and "% of the image lies beyond it" in shown
     assert "   400 " in shown and "no: " in shown and "degree_lambda" in shown
 
+    # `labkit dispersion crop`: the sensor's model on a crop; eval there = eval on the sensor
+    cropped = tmp_path / "crop.yaml"
+    assert main(["dispersion", "crop", str(out), "--origin", "40,64", "--shape", "96,128",
+                 "--out", str(cropped)]) == 0  # fmt: skip
+    assert "on the 128×96 px crop at (row, col) = (40, 64)" in capsys.readouterr().out
+    crop_model = load_dispersion_model(cropped)
+    assert crop_model.image_shape == (96, 128)
+    np.testing.assert_array_equal(
+        np.stack(crop_model.displacement(np.array([10.0, 100.0]), np.array([5.0, 90.0]), 520.0)),
+        np.stack(model.displacement(np.array([74.0, 164.0]), np.array([45.0, 130.0]), 520.0)),
+    )
+    assert main(["dispersion", "show", str(cropped)]) == 0
+    assert "crop         of the sensor's [192, 256] px" in capsys.readouterr().out
+    assert main(["dispersion", "crop", str(out), "--origin", "160,0", "--shape", "96,128",
+                 "--out", str(tmp_path / "outside.yaml")]) == 2  # fmt: skip
+    assert "does not lie inside the model's 192×256 px image" in capsys.readouterr().err
+    assert not (tmp_path / "outside.yaml").exists()
+    assert main(["dispersion", "crop", str(out), "--origin", "4", "--shape", "96,128",
+                 "--out", str(tmp_path / "bad.yaml")]) == 2  # fmt: skip
+    assert "--origin is '4'; expected two whole numbers" in capsys.readouterr().err
+
     # warping a multispectral image of the disks aligns its bands with the reference
     bands = {b: read_band(hdr, b) for b in ("450", "600")}
     wavelengths = [model.provenance["bands_table"][i]["wavelength_nm"] for i in (1, 4)]

@@ -120,11 +120,14 @@ def test_smooth_scene_known_answer(inputs, tmp_path: Path, capsys) -> None:
 def test_flat_grey_with_rig_and_dispersion(
     inputs, sim_rig_path: Path, tmp_path: Path, capsys
 ) -> None:
-    """rigs/simulated.yaml supplies response and CFA; flat patches skip Φ; colour back to 1e-3."""
+    """rigs/simulated.yaml supplies response and CFA; flat patches skip Φ; colour back to 1e-3
+    (σ = 0: no smooth spectrum has the colour (0.3, 0.5, 0.2) under the rig's response, and
+    the spectral smoothness term would move it)."""
     out = tmp_path / "out"
     args = ["reconstruct", str(inputs["grey"]), "--rig", str(sim_rig_path), "--bands", BANDS,
             "--dispersion", str(inputs["model"]), "--weights", "fixed:0.01", "--patch-px", "32",
-            "--pad-px", "8", "--quiet", "--out", str(out)]  # fmt: skip
+            "--pad-px", "8", "--spectral-smoothness", "0", "--quiet",
+            "--out", str(out)]  # fmt: skip
     assert main(args) == 0
     printed = capsys.readouterr().out
     assert "Φ used on 0, skipped on 6" in printed and "6 flat" in printed
@@ -138,11 +141,8 @@ def test_flat_grey_with_rig_and_dispersion(
     log = json.loads((out / "log.json").read_text())
     assert log["patches"]["phi_skipped_flat"] + log["patches"]["phi_skipped_negligible"] == 6
     assert log["dispersion"]["variables"] == "xylambda"
-    # no smooth spectrum has the colour (0.3, 0.5, 0.2) under the rig's response: the
-    # default spectral smoothness gives way to the thesis' problem, and the log says so
-    assert log["spectral_smoothness"] == 0.0
     sigma = log["choices"]["spectral_smoothness"]
-    assert sigma["source"] == "image" and "away from that of any smooth" in sigma["reason"]
+    assert log["spectral_smoothness"] == 0.0 and sigma["source"] == "given"
 
 
 def test_a_model_lacking_bands_is_clamped_and_the_outputs_say_so(
@@ -176,43 +176,34 @@ def test_a_model_lacking_bands_is_clamped_and_the_outputs_say_so(
     assert not refused.exists()
 
 
-def test_narrow_band_light_gets_the_thesis_problem(
+def test_the_choices_labkit_made_are_printed_and_logged(
     sim_rig_path: Path, tmp_path: Path, capsys
 ) -> None:
     """A flat green mosaic like the ColorChecker's through the rig's 550 nm filter (its
-    smooth fit misses it by 19 % at these bands): left to the default, the spectral
-    smoothness is 0, one line and the log say why; asked for explicitly, σ > 0 stays and
-    one warning line names the fix."""
+    smooth fit misses it by 19 % at these bands): the default σ stays, printed among the
+    choices labkit made with the band balance that goes with it, and the log records the
+    misfit as evidence; no warning. A given σ is not listed."""
     raw = _write_raw(tmp_path / "green.exr", np.broadcast_to([0.057, 1.0, 0.088], (*SHAPE, 3)))
     base = ["reconstruct", str(raw), "--rig", str(sim_rig_path), "--bands", BANDS, "--quiet",
             "--weights", "fixed:0.01", "--patch-px", "32"]  # fmt: skip
     assert main([*base, "--out", str(tmp_path / "default")]) == 0
     captured = capsys.readouterr()
-    lines = [line for line in captured.out.splitlines() if "narrow-band light" in line]
-    assert len(lines) == 1 and lines[0].startswith("  --spectral-smoothness 0: ")
     assert "choices labkit made (give the option to override):" in captured.out
-    assert "warning" not in captured.out and "NarrowBandWarning" not in captured.err
-    assert "band balance" not in captured.out.splitlines()[0]  # it goes with σ
-    assert "  --band-balance 0: no band balance at σ = 0" in captured.out
+    assert "  --spectral-smoothness 0.001: the smoothest" in captured.out
+    assert "  --band-balance 0.5: weakly sensed bands keep their edges" in captured.out
+    assert "  --reference none: the response gives the bands' scales" in captured.out
+    assert "warning" not in captured.out and "Warning" not in captured.err
     log = json.loads((tmp_path / "default" / "log.json").read_text())
-    assert log["spectral_smoothness"] == 0.0 and log["warnings"] == []
+    assert log["spectral_smoothness"] == 1e-3 and log["warnings"] == []
     sigma = log["choices"]["spectral_smoothness"]
-    assert sigma["source"] == "image" and "19 %" in sigma["reason"]
-    assert sigma["evidence"]["threshold"] == 0.02 and sigma["evidence"]["misfit"] > 0.18
-    assert log["band_balance"] == 0.0 and log["band_factors"] is None
+    assert sigma["source"] == "default" and sigma["evidence"]["mean_colour_misfit"] > 0.18
 
     out = tmp_path / "asked"
-    assert main([*base, "--spectral-smoothness", "1e-3", "--out", str(out)]) == 0
+    assert main([*base, "--spectral-smoothness", "0", "--out", str(out)]) == 0
     captured = capsys.readouterr()
-    lines = [line for line in captured.out.splitlines() if "narrow-band light?" in line]
-    assert len(lines) == 1 and lines[0].startswith("warning: ")
-    assert "--spectral-smoothness 0" in lines[0] and "NarrowBandWarning" not in captured.err
-    assert "prior EdgeL2 (band balance γ = 0.5), non-negative" in captured.out
+    assert "--spectral-smoothness" not in captured.out.split("choices labkit made")[1]
     log = json.loads((out / "log.json").read_text())
-    assert log["spectral_smoothness"] == 1e-3
-    assert log["choices"]["spectral_smoothness"]["source"] == "given"
-    assert log["band_balance"] == 0.5 and len(log["band_factors"]) == len(BANDS.split(","))
-    assert len(log["warnings"]) == 1 and "19 %" in log["warnings"][0]
+    assert log["spectral_smoothness"] == 0.0 and log["band_balance"] == 0.0
 
 
 def test_cubic_interpolation_keeps_a_grey_scene_grey(inputs, tmp_path: Path, capsys) -> None:
@@ -451,6 +442,12 @@ def test_a_measured_sensor_map_is_a_response_with_its_own_bands(tmp_path: Path, 
     np.testing.assert_allclose(
         mosaic(raw_colour, "GBRG"), mosaic(colour, "GBRG"), rtol=5e-3, atol=1e-4
     )
+    # a map without Green levels (G = 1 in every band) leaves the bands' scales unknown:
+    # the §6.3 reference puts them on one scale, and the log says why
+    log = json.loads((out / "log.json").read_text())
+    reference = log["choices"]["reference"]
+    assert log["reference"] == "mean-colour" and reference["source"] == "follows"
+    assert reference["evidence"] == {"green_per_band": 1.0}
 
 
 def test_the_python_api_writes_what_the_cli_writes(inputs, tmp_path: Path) -> None:

@@ -359,6 +359,16 @@ def _other_cases(w: Path) -> dict:
         ("dispersion eval", "mismatched values"): (["dispersion", "eval", w / "M" / "model.yaml",
                                                     "--x", "1", "2", "3", "--y", "1", "2",
                                                     "--wavelength", "500"], [], ["--x"]),
+        ("dispersion crop", "window outside the image"): (
+            ["dispersion", "crop", w / "M" / "model.yaml", "--origin", "0,0", "--shape",
+             "4000,4000", "--out", w / "crop.yaml"], [w / "crop.yaml"],
+            ["does not lie inside"]),
+        ("dispersion crop", "binary model"): (
+            ["dispersion", "crop", w / "bad.exr", "--origin", "0,0", "--shape", "8,8",
+             "--out", w / "crop.yaml"], [w / "crop.yaml"], ["bad.exr"]),
+        ("dispersion crop", "--out the model itself"): (
+            ["dispersion", "crop", w / "M" / "model.yaml", "--origin", "0,0", "--shape", "8,8",
+             "--out", w / "M" / "model.yaml"], [], ["--out", "is the input model"]),
     }  # fmt: skip
 
 

@@ -15,9 +15,9 @@ from test_image_formation import spectral_model
 
 from labkit.cli.reconstruct import CLI_NAMES, _declared
 from labkit.errors import ConfigError, DataError
-from labkit.spectra import camera_response
+from labkit.spectra import Spectra, camera_response
 from reconstruction import OptionError, ReconstructOptions, reconstruct
-from reconstruction.choices import MIN_PAD_PX, NARROW_BAND_MISFIT, SOURCES
+from reconstruction.choices import MIN_PAD_PX, SOURCES
 from reconstruction.image_formation import LatentSpace, build_formation
 from reconstruction.option_table import OPTION_TABLE, OptionSpec
 from reconstruction.patches import SolverOptions
@@ -44,8 +44,9 @@ def test_defaults_are_recorded_with_where_they_came_from() -> None:
     assert all(c["source"] in SOURCES and c["reason"] for c in choices.values())
     sigma = choices["spectral_smoothness"]
     assert sigma["value"] == SUGGESTED_SMOOTHNESS and sigma["source"] == "default"
-    assert sigma["evidence"]["threshold"] == NARROW_BAND_MISFIT
-    assert 0 <= sigma["evidence"]["misfit"] < NARROW_BAND_MISFIT
+    assert 0 <= sigma["evidence"]["mean_colour_misfit"] < 0.02
+    assert choices["reference"]["value"] is None  # a continuous response: the bands' scales
+    assert choices["reference"]["source"] == "default"
     assert choices["band_balance"]["value"] == result.log["band_balance"] == 0.5
     assert choices["rtol"]["value"] == result.log["rtol"] == 1e-5
     assert choices["rtol"]["source"] == "follows"
@@ -88,6 +89,41 @@ def test_a_planted_dispersion_sets_the_overlap_from_its_reach() -> None:
     assert result.log["pad_px"] == pad["value"]
     assert result.log["choices"]["interpolation"]["value"] == "cubic"
     assert result.log["choices"]["extrapolation"]["value"] == "clamp"
+
+
+MAP_BANDS = [450.0, 500.0, 550.0, 600.0, 650.0]
+
+
+def _sensor_map(green: np.ndarray) -> Spectra:
+    bands = np.array(MAP_BANDS)
+    ratios = np.array([[0.3, 4.8], [0.09, 0.9], [0.05, 0.07], [2.5, 0.02], [6.0, 0.01]])
+    values = np.column_stack([ratios[:, 0], np.ones(5), ratios[:, 1]]) * green[:, None]
+    return Spectra(bands, values, ("R", "G", "B"))
+
+
+def test_a_map_with_the_same_green_in_every_band_gets_the_mean_colour_reference() -> None:
+    """The thesis' normalisation (G = 1 in every band) leaves the bands' relative scales
+    unknown: "auto" takes the §6.3 reference, with the evidence; a map with Green levels
+    (labkit's levelled convention) keeps the plain problem; a given reference is kept."""
+    levels = np.array([0.2, 0.7, 1.0, 0.8, 0.3])
+    unlevelled = ReconstructOptions(cfa="GBRG", response=_sensor_map(np.ones(5)), bands=MAP_BANDS)
+    levelled = ReconstructOptions(cfa="GBRG", response=_sensor_map(levels), bands=MAP_BANDS)
+    assert unlevelled.choices["reference"].value == "mean-colour"
+    assert unlevelled.choices["reference"].evidence == {"green_per_band": 1.0}
+    assert levelled.choices["reference"].value is None
+    plain = ReconstructOptions(
+        cfa="GBRG", response=_sensor_map(np.ones(5)), bands=MAP_BANDS, reference=None
+    )
+    assert plain.choices["reference"].value is None
+    assert plain.choices["reference"].source == "given"
+    # the reconstruction applies it: the latent's scale is the reference's
+    space = LatentSpace.spectral(_sensor_map(np.ones(5)), MAP_BANDS)
+    raw = build_formation(space, (32, 32), "GBRG").forward(
+        blobs((32, 32), space.channels, np.random.default_rng(1))
+    )
+    result = reconstruct(raw, unlevelled, weights="fixed:0.01", patch_px=16)
+    assert result.log["reference"] == "mean-colour"
+    assert not np.allclose(result.log["reference_scale"], 1.0)
 
 
 def _bad_text(spec: OptionSpec) -> str | None:

@@ -1,0 +1,74 @@
+"""`labkit bench matrix`: the defaults against the best variant, row by row."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import labkit.bench.matrix as matrix
+from labkit.bench.harness import Measurement, Plot, Table
+from labkit.bench.matrix import TOLERANCE, bench_matrix, row_verdicts, verdict_table
+
+
+def _m(row: str, variant: str, **errors: float | None) -> Measurement:
+    return Measurement(
+        f"{row}, {variant}",
+        1.0,
+        [1.0],
+        10.0,
+        extra={
+            "row": row,
+            "kind": "simulated",
+            "light": "broadband",
+            "variant": variant,
+            "error_measures": ["spectral_rmse", "ca_rg_px"],
+            "cpu_s": 1.5,
+            **errors,
+        },
+    )
+
+
+def test_verdicts_hold_the_defaults_to_the_best_variant() -> None:
+    """Known answers: 5 % above the best passes, twice the best fails and names the winner,
+    a measure no variant could take (None) is left out of the verdict."""
+    results = [
+        _m("a", "defaults", spectral_rmse=0.105, ca_rg_px=None),
+        _m("a", "σ = 0", spectral_rmse=0.100, ca_rg_px=None),
+        _m("b", "defaults", spectral_rmse=0.2, ca_rg_px=0.05),
+        _m("b", "σ = 0", spectral_rmse=0.1, ca_rg_px=0.06),
+        _m("b", "bilinear Φ", spectral_rmse=0.3, ca_rg_px=0.01),
+    ]
+    a, b = row_verdicts(results, "defaults")
+    assert a["passed"] and a["ratios"]["spectral_rmse"]["ratio"] == pytest.approx(1.05)
+    assert set(a["ratios"]) == {"spectral_rmse"}
+    assert not b["passed"]
+    assert b["ratios"]["spectral_rmse"] == {"ratio": 2.0, "best": 0.1, "best_variant": "σ = 0"}
+    assert b["ratios"]["ca_rg_px"]["ratio"] == pytest.approx(5.0)
+    assert b["ratios"]["ca_rg_px"]["best_variant"] == "bilinear Φ"
+    table = verdict_table(results, "defaults")
+    assert [line[3] for line in table.rows] == ["yes", "**no**"]
+    assert "spectral_rmse 2.00 (best: σ = 0)" in table.rows[1][2]
+    assert 1 + TOLERANCE == pytest.approx(1.1)
+
+
+def test_a_row_runs_end_to_end(sim_rig_path: Path, tmp_path: Path, monkeypatch) -> None:
+    """One small simulated row with two variants: a measurement per pair with finite
+    errors, the defaults' automatic choices recorded, a verdict line and the plot."""
+    monkeypatch.setattr(matrix, "SIM_SHAPE", (64, 96))
+    variants = (("defaults", {}), ("σ = 0", {"spectral_smoothness": 0.0}))
+    results, notes = bench_matrix(
+        sim_rig_path, out=tmp_path, rows=["simulated texture 96×64"], variants=variants
+    )
+    assert [m.extra["variant"] for m in results] == ["defaults", "σ = 0"]
+    for m in results:
+        assert np.isfinite(m.extra["spectral_rmse"]) and 0 < m.extra["spectral_rmse"] < 1
+        assert m.extra["cpu_s"] > 0 and m.seconds > 0
+    assert "spectral_smoothness" in results[0].extra["choices"]
+    assert "spectral_smoothness" not in results[1].extra["choices"]  # given
+    table, errors, plot = notes
+    assert isinstance(table, Table) and len(table.rows) == 1
+    assert len(errors.rows) == 1 and len(errors.rows[0]) == 3
+    assert sum(cell.startswith("**") for cell in errors.rows[0][1:]) >= 1  # the best, bold
+    assert isinstance(plot, Plot) and (tmp_path / plot.file).stat().st_size > 0
