@@ -43,10 +43,6 @@ SOURCES = {
 }
 """Where a choice's value came from, and how a summary names it."""
 
-SOLVER_PATHS = ("admm", "exact", "direct-or-admm")
-"""How patches are solved: ADMM; the exact active-set method on every patch; or exactly and
-directly where the initial estimate has few values at zero, ADMM elsewhere."""
-
 MIN_PAD_PX = 8
 """Smallest default patch overlap, px."""
 
@@ -95,7 +91,6 @@ class ImageFacts:
 
     Attributes
     ----------
-    shape : (rows, cols)
     colour_mean : ndarray (3,) or None
         Mean raw value of each CFA channel (None when no choice needs it).
     smooth_fit : ndarray (n,) or None
@@ -106,7 +101,6 @@ class ImageFacts:
         Largest displacement of the dispersion model over the image, px (0 without Φ).
     """
 
-    shape: tuple[int, int]
     colour_mean: np.ndarray | None = None
     smooth_fit: np.ndarray | None = None
     misfit: float | None = None
@@ -122,7 +116,6 @@ class Choices:
     """
 
     entries: Mapping[str, Choice]
-    facts: ImageFacts | None = None
 
     def __getitem__(self, name: str) -> Choice:
         return self.entries[name]
@@ -166,14 +159,6 @@ class Choices:
         """Every choice, JSON-ready (``log.json``'s ``choices``)."""
         return {name: choice.to_dict() for name, choice in self.entries.items()}
 
-    def lines(self, *, sources: tuple[str, ...] = ("image", "default")) -> list[str]:
-        """One line per choice from `sources` (default: those labkit made), for summaries."""
-        return [
-            f"{name} = {_shown(c.value)} ({SOURCES[c.source]}: {c.reason})"
-            for name, c in self.entries.items()
-            if c.source in sources
-        ]
-
 
 def resolve_choices(options: Any, *, facts: ImageFacts | None = None) -> Choices:
     """Resolve every automatic choice of `options` (a
@@ -196,18 +181,16 @@ def resolve_choices(options: Any, *, facts: ImageFacts | None = None) -> Choices
     terms = o.terms
     entries["band_balance"] = _balance(o, entries["spectral_smoothness"], terms)
     entries["reference"] = _reference(o)
-    criterion = o.weights.partition(":")[2] if isinstance(o.weights, str) else "fixed"
-    if isinstance(o.weights, str) and o.weights.startswith("fixed"):
-        criterion = "fixed"
+    criterion = o.criterion
     entries["weights"] = Choice(
         o.weights if isinstance(o.weights, str) else list(o.weights),
         "default" if o.weights == "auto:dmc" else "given",
-        "weights by Algorithm 3 with the thesis' demosaicing criterion"
+        f"weights by Algorithm 3 with the {criterion} criterion"
         if criterion != "fixed"
         else "fixed weights",
         {"criterion": criterion},
     )
-    l1 = any(t.norm == 1 for t in terms)
+    l1 = o.l1_terms
     exact_weights = smoothness > 0 and not l1 and criterion not in ("mdc", "fixed")
     entries["exact_weights"] = Choice(
         exact_weights,
@@ -236,7 +219,7 @@ def resolve_choices(options: Any, *, facts: ImageFacts | None = None) -> Choices
         entries["extrapolation"] = _named(o.extrapolation, "clamp", EXTRAPOLATION_REASONS)
     if facts is not None:
         entries["pad_px"] = _pad(o, facts)
-    return Choices(entries, facts)
+    return Choices(entries)
 
 
 def image_facts(
@@ -244,12 +227,12 @@ def image_facts(
 ) -> ImageFacts:
     """What :func:`resolve_choices` needs from the normalised raw image `y`: the mean colour
     and (6.1)'s fit to it when a choice or the §6.3 reference uses them, and Φ's reach."""
-    reference = _reference(options).value
-    if reference != "mean-colour" and _number(_smoothness(options, None).value) == 0:
-        return ImageFacts(tuple(y.shape), reach_px=reach_px)
+    before = options.choices  # resolved without the image
+    if before["reference"].value != "mean-colour" and before.smoothness == 0:
+        return ImageFacts(reach_px=reach_px)
     colour_mean = mean_colour(y, options.cfa)
     fit, misfit = smooth_mean_colour(colour_mean, colour_gain * space.colour_matrix())
-    return ImageFacts(tuple(y.shape), colour_mean, fit, misfit, reach_px)
+    return ImageFacts(colour_mean, fit, misfit, reach_px)
 
 
 # -- the rules --------------------------------------------------------------------------
@@ -425,11 +408,3 @@ def _plain(value: Any) -> Any:
     if isinstance(value, (tuple, np.ndarray)):
         return [_plain(v) for v in value]
     return value
-
-
-def _shown(value: Any) -> str:
-    if isinstance(value, float):
-        return f"{value:g}"
-    if isinstance(value, list) and value and all(isinstance(v, float) for v in value):
-        return f"{len(value)} values {value[0]:g}…{value[-1]:g}"
-    return str(value)

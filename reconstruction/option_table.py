@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -76,6 +76,9 @@ class OptionSpec:
         What happens when it is left out, for ``--help``.
     example : str
         A typical value, quoted by messages.
+    or_origins : bool
+        Whole numbers only: a sequence (of patch origins, checked where they are used) is a
+        value too, taken as it is.
     """
 
     name: str
@@ -92,6 +95,7 @@ class OptionSpec:
     metavar: str = ""
     default_help: str = ""
     example: str = ""
+    or_origins: bool = False
 
     # -- checking ------------------------------------------------------------------------
     def expected(self) -> str:
@@ -134,6 +138,8 @@ class OptionSpec:
                 raise OptionValueError(f"{{option}} is {value!r}; expected {self.expected()}")
             return bool(value)
         if self.kind == "whole":
+            if self.or_origins and isinstance(value, Sequence) and not isinstance(value, str):
+                return value
             whole = isinstance(value, (int, np.integer)) and not isinstance(value, bool)
             if not whole or not self._within(float(value)) or (self.even and value % 2):
                 raise OptionValueError(f"{{option}} is {value!r}; expected {self.expected()}")
@@ -150,27 +156,13 @@ class OptionSpec:
         :class:`OptionValueError` naming the text as given."""
         if self.optional and text == NONE_TEXT:
             return None
-        if self.kind == "whole":
-            try:
-                value: Any = int(text)
-            except ValueError:
-                raise OptionValueError(
-                    f"{{option}} is {text!r}; expected {self.expected()}"
-                ) from None
-        elif self.kind == "number":
-            value = _float(text)
-            if not math.isfinite(value):  # kept as text, so the message quotes it as given
-                raise OptionValueError(f"{{option}} is {text!r}; expected {self.expected()}")
-        else:
-            value = text
+        if self.kind not in ("whole", "number"):
+            return self.check(text)
         try:
-            return self.check(value)
-        except OptionValueError:
-            if self.kind in ("whole", "number"):
-                raise OptionValueError(
-                    f"{{option}} is {text!r}; expected {self.expected()}"
-                ) from None
-            raise
+            return self.check(int(text) if self.kind == "whole" else float(text))
+        except (ValueError, OptionValueError):
+            # the message quotes the text as given, not the number it was read as
+            raise OptionValueError(f"{{option}} is {text!r}; expected {self.expected()}") from None
 
     def _within(self, value: float) -> bool:
         if self.least is not None and (
@@ -375,6 +367,7 @@ OPTION_TABLE: tuple[OptionSpec, ...] = (
         "whole",
         "how many of the most textured patches the weights are chosen on",
         least=1,
+        or_origins=True,
         metavar="N",
     ),
     OptionSpec(

@@ -291,7 +291,7 @@ def _rows(rig_path: Path, work: Path, wanted: Sequence[str] | None) -> list[Row]
     rows: list[Row] = []
     if keep("real"):
         rows += [r for r in real_rows(work / "real") if keep(r.name)]
-    rows += [r for r in simulated_rows(rig_path, keep=keep)]
+    rows += simulated_rows(rig_path, keep=keep)
     return rows
 
 

@@ -121,13 +121,7 @@ def _add_declared(parser: argparse.ArgumentParser, spec: OptionSpec) -> None:
         if spec.kind == "flag":
             default = spec.flag if value else f"--no-{spec.flag[2:]}"
         else:
-            default = (
-                NONE_TEXT
-                if value is None
-                else f"{value:g}"
-                if isinstance(value, float)
-                else str(value)
-            )
+            default = _shown(value)
     text = f"{spec.help} (default: {default})"
     if spec.kind == "flag":
         parser.add_argument(

@@ -161,6 +161,18 @@ def test_inverse_block_gathers_the_columns_of_the_inverse() -> None:
     np.testing.assert_allclose(block, 0.5 * (expected + expected.T), atol=1e-12)
 
 
+def _radial_patch_formation() -> ImageFormation:
+    """A of a 24×36 patch at (8, 10) with Φ of a radial field, bilinear sampling."""
+    return build_formation(
+        latent_space(),
+        (24, 36),
+        "GBRG",
+        model=spectral_model(RadialField(0.05)),
+        origin=(8, 10),
+        interpolation="bilinear",
+    )
+
+
 @pytest.mark.parametrize("identity", [1e-9, 1e-3, 1.0])
 def test_fourier_solver_blocks_match_a_direct_inverse(identity: float) -> None:
     """The blocks are inverted by the Woodbury identity (the data term is rank 4 per
@@ -171,14 +183,7 @@ def test_fourier_solver_blocks_match_a_direct_inverse(identity: float) -> None:
     from reconstruction.solvers import fourier
 
     fourier._LOCAL.clear()
-    a = build_formation(
-        latent_space(),
-        (24, 36),
-        "GBRG",
-        model=spectral_model(RadialField(0.05)),
-        origin=(8, 10),
-        interpolation="bilinear",
-    )
+    a = _radial_patch_formation()
     terms = [(0.01, PRIORS["L2"][0]), (1e-3, PriorTerm("spectral", 2))]
     solver = FourierSolver((24, 36), "GBRG", a.fourier_colour(), terms=terms, identity=identity)
     assert solver.dispersive
@@ -260,14 +265,7 @@ def test_mean_translation_operator_is_what_the_fourier_solver_inverts() -> None:
     """Ã (Φ as per-sample mean translations, by FFT): ⟨Ãx, y⟩ = ⟨x, Ãᵀy⟩ to 1e-10, the FFT
     solver's matrix is 2ÃᵀÃ + βI, and for a uniform periodic shift Ã is A itself."""
     rng = np.random.default_rng(7)
-    a = build_formation(
-        latent_space(),
-        (24, 36),
-        "GBRG",
-        model=spectral_model(RadialField(0.05)),
-        origin=(8, 10),
-        interpolation="bilinear",
-    )
+    a = _radial_patch_formation()
     x = rng.standard_normal(a.domain_shape)
     y = rng.standard_normal(a.range_shape)
     forward, adjoint = a.translation_forward(x), a.translation_adjoint(y)

@@ -154,3 +154,15 @@ def test_braces_in_a_quoted_value_survive_the_message() -> None:
         ReconstructOptions(**BASE, prior="{weird}")
     assert "unknown prior '{weird}'" in str(caught.value)
     assert "unknown --prior '{weird}'" in caught.value.message(CLI_NAMES)
+
+
+def test_weight_patches_take_a_count_or_origins() -> None:
+    """weight_patches is a count (declared ≥ 1) or the patches' origins, which the weight
+    stage checks and uses as given."""
+    origins = [(0, 0), (0, 16)]
+    options = ReconstructOptions(**BASE, weight_patches=origins, weight_patch_px=16)
+    assert options.weight_patches == origins
+    result = reconstruct(_raw(), options, patch_px=16)
+    assert result.log["weights"]["patches"] == [[0, 0], [0, 16]]
+    with pytest.raises(OptionError, match="weight_patches is 0; expected a whole number ≥ 1"):
+        ReconstructOptions(**BASE, weight_patches=0)
