@@ -47,9 +47,16 @@ from reconstruction.solvers.cg import conjugate_gradient
 from reconstruction.solvers.fourier import FourierSolver
 
 MAX_ACTIVE = 2000
-"""Largest active set the preconditioner corrects for exactly (dense k × k matrix: 32 MB,
-one Cholesky factorisation per round; its time is in the README, how it works); beyond,
-the most strongly held values."""
+"""Largest working set of :func:`solve_periodic` (dense k × k matrix: 32 MB, one Cholesky
+factorisation per round; its time is in the README, how it works)."""
+
+MAX_PINNED = 500
+"""Most values held at zero that :func:`polish`'s preconditioner corrects for exactly (the
+most strongly held ones; the rest are only masked). The k × k gather and Cholesky factor
+cost O(k²) and O(k³) per round, and beyond a few hundred values they cost more than the
+CG steps a fuller correction saves: the real frames under the G = 1 sensor map hold
+thousands of values at zero, and the weight search's solves there took 16 s at 2000
+against 3 s at 500, with the same weight (docs, speed)."""
 
 MAX_ROUNDS = 30
 """Newton rounds before giving up (the last iterate, never worse than the start, is kept)."""
@@ -128,7 +135,7 @@ def inverse_block(
 class _Capacitance:
     """Preconditioner ``(K̃_FF)⁻¹`` for an active set S, from K̃'s impulse responses.
 
-    The correction uses the `pinned` subset of S (all of it up to :data:`MAX_ACTIVE`):
+    The correction uses the `pinned` subset of S (all of it up to :data:`MAX_PINNED`):
     that is the inverse of a larger principal block of K̃, restricted to F, so still
     symmetric positive definite, only a rougher preconditioner.
     """
@@ -232,11 +239,11 @@ def polish(
             if impulses is None:
                 # consistent with the unrefined solves of the preconditioner (_Capacitance)
                 impulses = solver.impulse_responses(refine=False)
-            if report.active <= MAX_ACTIVE:
+            if report.active <= MAX_PINNED:
                 pinned = active
             else:  # correct for the most strongly held values only
                 order = np.argsort(np.where(active, gradient, -np.inf), axis=None)
-                pinned.ravel()[order[-MAX_ACTIVE:]] = True
+                pinned.ravel()[order[-MAX_PINNED:]] = True
         try:
             precondition = _Capacitance(solver, impulses, pinned, active)
         except (np.linalg.LinAlgError, ValueError):

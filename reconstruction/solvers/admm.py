@@ -92,13 +92,16 @@ a flat valley of the objective (README, reproducible solves). Not at σ = 0, who
 stop is kept on purpose (:data:`DEFAULT_RTOL`), nor in solves with ``settle=False``."""
 STALL_FACTOR = 0.5
 DIRECT_MAX_ZEROS = 600
-"""Largest number of values at or below zero in the start (without Φ: in the
-unconstrained optimum) for which a direct exact solve (``direct``, or ``exact_nonneg``
-with spectral smoothness and Φ) skips ADMM: the active-set methods factorise a dense block
-over the values held at zero, which costs more than ADMM once they number in the
-thousands. No limit for ``exact_nonneg`` without Φ (an edge-guided prior's weight search,
-whose ADMM steps need CG): ADMM there costs more than the rounds, as for
-:func:`~reconstruction.solvers.active_set.solve_periodic`."""
+"""Largest number of values at or below zero in the unconstrained optimum for which a
+direct exact solve without Φ (``direct``) skips ADMM: the dual active-set method
+factorises a dense block over its working set, which costs more than ADMM once it numbers
+in the thousands. No limit for ``exact_nonneg`` without Φ (an edge-guided prior's weight
+search, whose ADMM steps need CG): ADMM there costs more than the rounds, as for
+:func:`~reconstruction.solvers.active_set.solve_periodic`. None with Φ either: projected
+Newton there masks the values held at zero in its preconditioner (and corrects for at most
+:data:`~reconstruction.solvers.active_set.MAX_PINNED` of them without Φ), so its rounds
+cost no more with thousands of zeros, and on every row of the validation matrix the
+direct solve was faster than ADMM (docs, speed)."""
 DIRECT_CG_RTOL = 1e-6
 """CG tolerance of the projected-Newton rounds that replace ADMM for an exact solve with Φ
 and spectral smoothness (the KKT test, not this, decides when the optimum is reached)."""
@@ -393,10 +396,10 @@ def solve(
         several times the cost of the ADMM solve.
     direct : bool
         For a non-negative L2-type problem, try the exact optimum with no ADMM: without Φ
-        by the dual active-set method (as ``exact_nonneg``), with Φ by projected Newton
-        straight from the start (the initial estimate) when at most
-        :data:`DIRECT_MAX_ZEROS` of its values are ≤ 0; ADMM as usual otherwise, or if
-        the rounds do not settle. ``exact_nonneg`` does the same with σ > 0.
+        by the dual active-set method (as ``exact_nonneg``) when at most
+        :data:`DIRECT_MAX_ZEROS` values of the unconstrained optimum are ≤ 0, with Φ by
+        projected Newton straight from the start (the initial estimate); ADMM as usual
+        otherwise, or if the rounds do not settle. ``exact_nonneg`` does the same with σ > 0.
     settle : bool
         With spectral smoothness (σ > 0), stop only once the objective has also settled
         (:data:`STALL_WINDOW`). Off for solves that promise no optimum, such as weight
@@ -416,24 +419,17 @@ def solve(
     start = None  # the initial estimate, once the direct attempt has made it
     if (exact_nonneg or direct) and problem.nonneg and not l1_splits:
         exact = _QuadraticStep(problem, [], cg_rtol, cg_max_iter)
-        # a direct solve (no ADMM) gives up where so many values start at zero that the
-        # dense k × k blocks of the active-set methods cost more than ADMM
-        if exact.exact:  # no Φ: the dual active-set method, from one FFT solve
+        if exact.exact:  # no Φ: the dual active-set method, from one FFT solve; a direct
+            # solve gives up where its dense working set would cost more than ADMM
             limit = None if exact_nonneg else DIRECT_MAX_ZEROS
             x_exact, report.polish = solve_periodic(problem, exact.solver, max_zeros=limit)
         elif problem.smoothness > 0 or direct:
             # a unique optimum: projected Newton straight from the initial estimate, whose
             # matrix K̃ is here, priors being quadratic
             start = x0 if x0 is not None else initial_estimate(problem, solver=exact.solver)
-            # without Φ (an edge-guided prior's weight search), ADMM with CG costs more than
-            # the active-set rounds however many values start at zero, as for solve_periodic
-            limit = (
-                None if exact_nonneg and exact.formation.dispersion is None else DIRECT_MAX_ZEROS
+            x_exact, report.polish = polish(
+                problem, start, exact.apply, exact.solver, cg_rtol=DIRECT_CG_RTOL
             )
-            if limit is None or int(np.count_nonzero(start <= 0)) <= limit:
-                x_exact, report.polish = polish(
-                    problem, start, exact.apply, exact.solver, cg_rtol=DIRECT_CG_RTOL
-                )
         if report.polish is not None and report.polish.status == "optimal":
             report.converged, report.splits = True, ["nonneg"]
             return _finish(problem, x_exact, report, exact)
