@@ -170,8 +170,15 @@ class Dispersion(LinearOperator):
         row_taps, col_taps = [], []
         max_shift = 0.0
         means = []
-        for band in bands:
-            ex, ey = model.displacement(xx + col0, yy + row0, **band)
+        if self.wavelengths_nm is not None:  # every band in one evaluation
+            all_x, all_y = model.displacement(
+                (xx + col0)[..., None], (yy + row0)[..., None], self.wavelengths_nm
+            )
+        for j, band in enumerate(bands):
+            if self.wavelengths_nm is not None:
+                ex, ey = all_x[..., j], all_y[..., j]
+            else:
+                ex, ey = model.displacement(xx + col0, yy + row0, **band)
             if not (np.all(np.isfinite(ex)) and np.all(np.isfinite(ey))):
                 raise DataError(f"the dispersion model gives NaN or Inf displacements at {band}")
             max_shift = max(max_shift, float(np.sqrt(np.max(ex * ex + ey * ey))))
