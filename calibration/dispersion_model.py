@@ -247,9 +247,7 @@ class DispersionModel:
                 raise DataError("this spectral dispersion model needs wavelength_nm")
             if channel is not None:
                 raise DataError("channel= applies to colour-channel models, not spectral ones")
-            x, y, wavelength_nm = (
-                np.asarray(v, np.float64) for v in (x, y, wavelength_nm)
-            )
+            x, y, wavelength_nm = (np.asarray(v, np.float64) for v in (x, y, wavelength_nm))
             if self.extrapolation == "clamp":
                 # before broadcasting: positions given once for many wavelengths are moved
                 # once (the hull's nearest point costs far more than the polynomial)

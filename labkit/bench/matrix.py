@@ -19,8 +19,9 @@ in the reconstruction's geometry, and the patch centres against the spectrometer
 simulated rows: per pixel against the rendered truth; each band scaled by least squares,
 eq. 4.9), its residual chromatic aberration (edge strips of the ColorChecker's patches,
 §4.4.3; disk-centre offsets R−G and B−G on the disk chart), its time (wall and CPU; the
-defaults' wall time is held to :data:`TARGET_S`) and its ADMM iterations. A row **passes** when the defaults are within :data:`TOLERANCE` of the
-best variant on every one of its error measures.
+defaults' wall time is held to :data:`TARGET_S`) and its ADMM iterations. A row
+**passes** when the defaults are within :data:`TOLERANCE` of the best variant on every one
+of its error measures.
 """
 
 from __future__ import annotations
