@@ -224,3 +224,42 @@ def test_a_cropped_model_is_the_sensor_model_at_the_crops_place(tmp_path) -> Non
     )
     with pytest.raises(DataError, match="does not lie inside the model's 96×128 px image"):
         sensor.cropped((60, 0), (48, 64))
+
+
+def test_clamping_before_broadcasting_matches_point_by_point() -> None:
+    """Positions given once for many wavelengths are clamped once: the same displacements
+    as clamping every (x, y, λ) point, positions beyond the hull and λ beyond the range
+    included; and a spectral Φ evaluated for all bands at once equals Φ band by band."""
+    model = model_over(grid_region()).within_domain()
+    x = np.linspace(-50.0, 1050.0, 12)[None, :, None]  # beyond the hull at both ends
+    y = np.linspace(20.0, 680.0, 9)[:, None, None]
+    waves = np.array([400.0, 450.0, 560.0, 700.0])[None, None, :]
+    dx, dy = model.displacement(x, y, waves)
+    grid = np.broadcast_arrays(x, y, waves)
+    each = [
+        model.displacement(float(a), float(b), float(c))
+        for a, b, c in zip(*(g.ravel() for g in grid))
+    ]
+    np.testing.assert_allclose(dx.ravel(), [e[0] for e in each], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(dy.ravel(), [e[1] for e in each], rtol=0, atol=1e-12)
+    at_once = Dispersion(
+        model,
+        waves.ravel(),
+        origin=(650, 950),
+        shape=(16, 16),
+        overhang_px=8,
+        interpolation="cubic",
+    )
+    for j, w in enumerate(waves.ravel()):
+        alone = Dispersion(
+            model,
+            np.array([w]),
+            origin=(650, 950),
+            shape=(16, 16),
+            overhang_px=8,
+            interpolation="cubic",
+        )
+        np.testing.assert_array_equal(at_once.taps.weights_x[j], alone.taps.weights_x[0])
+        np.testing.assert_array_equal(at_once.taps.offsets_y[j], alone.taps.offsets_y[0])
+    with pytest.raises(DataError, match="NaN or Inf"):
+        model.displacement(np.array([np.nan]), 300.0, 500.0)

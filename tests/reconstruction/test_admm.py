@@ -318,6 +318,27 @@ def test_dual_active_set_solve_falls_back_to_admm(monkeypatch: pytest.MonkeyPatc
     assert fallback.report.objective == pytest.approx(direct.report.objective, rel=1e-7)
 
 
+def test_finish_corrects_for_the_most_strongly_held_values(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Without Φ the finish corrects its preconditioner for at most :data:`MAX_PINNED`
+    values held at zero (here 3, of more than 3 held): it still reaches a KKT point, at
+    the objective of the fully corrected finish (both stop at the KKT tolerance: within
+    2e-5 at this tiny weight, measured), in more CG steps (the cap is honoured)."""
+    import reconstruction.solvers.active_set as active_set
+
+    p = problem("L2", 1e-6, True, seed=2)
+    apply, solver = quadratic_system(p)
+    start = initial_estimate(p, solver=solver)
+    full, full_report = polish(p, start, apply, solver)
+    assert full_report.status == "optimal" and full_report.active > 3
+    monkeypatch.setattr(active_set, "MAX_PINNED", 3)
+    capped, capped_report = polish(p, start, apply, solver)
+    assert capped_report.status == "optimal" and kkt_violation(p, capped) < 1e-5
+    assert p.objective(capped) == pytest.approx(p.objective(full), rel=1e-4)
+    assert sum(capped_report.cg_iterations) > sum(full_report.cg_iterations)
+
+
 def test_exact_finish_with_dispersion() -> None:
     """Simulated rig's lens, corner patch (Φ up to 2 px): the active-set finish with the
     FFT preconditioner satisfies KKT to 1e-5 in ≤ 30 rounds."""
@@ -365,7 +386,8 @@ def test_direct_exact_solve_with_dispersion_and_smoothness(monkeypatch: pytest.M
     """Φ (the rig's corner, up to 2 px) and σ = 1e-3: ``direct=True`` reaches the KKT point by
     projected Newton from the initial estimate without any ADMM iteration, within 1e-8 of a
     tight ADMM solve's objective (ε_rel 1e-9, 69 iterations) and below the default solve's;
-    where the rounds do not settle it is plain ADMM again."""
+    where the rounds do not settle it is plain ADMM again. However many values start at
+    zero: the limit on them (:data:`DIRECT_MAX_ZEROS`) is the dual method's, without Φ."""
     import reconstruction.solvers.admm as admm
 
     rng = np.random.default_rng(6)
@@ -373,6 +395,7 @@ def test_direct_exact_solve_with_dispersion_and_smoothness(monkeypatch: pytest.M
     _, raw = noisy_raw(a, rng, noise=0.002)
     p = Problem(a, raw, PRIORS["L2"], (4.7e-4,), True, smoothness=SUGGESTED_SMOOTHNESS)
     default = solve(p)
+    monkeypatch.setattr(admm, "DIRECT_MAX_ZEROS", -1)
     direct = solve(p, direct=True)
     tight = solve(p, rtol=1e-9, max_iter=5000)
     assert a.dispersion.max_shift_px > 0.5 and default.report.iterations > 5

@@ -92,6 +92,33 @@ def test_exact_selection_finds_the_criterion_minimum_of_converged_solves() -> No
     assert selection.solves < loose.solves
 
 
+def test_exact_search_starts_from_the_nearest_optimum(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The edge-guided prior (not circulant: projected Newton, which takes a start): each
+    exact solve after the first starts from the nearest weight's optimum, and the search
+    chooses the weight it chooses from the initial estimates (1e-3 relative; the optima
+    agree to the KKT tolerance), with the same score."""
+    from reconstruction.solvers import admm
+
+    problem = textured_problem()
+    guided = Problem(
+        problem.formation, problem.raw, PRIORS["EdgeL2"], (1.0,), True, smoothness=1e-3
+    )
+    starts: list[bool] = []
+    solve_exact = admm.solve
+
+    def recording(p: Problem, **kwargs: object):
+        starts.append(kwargs.get("x0") is not None)
+        return solve_exact(p, **kwargs)
+
+    monkeypatch.setattr(weights_module, "solve", recording)
+    warm = select_weights([guided], criterion="dmc", exact=True)
+    assert starts[0] is False and all(starts[1:]) and len(starts) == warm.solves
+    monkeypatch.setattr(weights_module._Evaluator, "_nearest", lambda self, weights: None)
+    cold = select_weights([guided], criterion="dmc", exact=True)
+    assert warm.weights[0] == pytest.approx(cold.weights[0], rel=1e-3)
+    assert warm.value == pytest.approx(cold.value, rel=1e-5)
+
+
 @pytest.mark.parametrize("level", [3.0, 65535.0])
 def test_mdc_on_a_flat_image_returns_it_flat(level: float) -> None:
     """A flat image fits the data at every weight, so the MDC's misfit range is only the
