@@ -238,7 +238,7 @@ def test_clamping_before_broadcasting_matches_point_by_point() -> None:
     grid = np.broadcast_arrays(x, y, waves)
     each = [
         model.displacement(float(a), float(b), float(c))
-        for a, b, c in zip(*(g.ravel() for g in grid))
+        for a, b, c in zip(*(g.ravel() for g in grid), strict=True)
     ]
     np.testing.assert_allclose(dx.ravel(), [e[0] for e in each], rtol=0, atol=1e-12)
     np.testing.assert_allclose(dy.ravel(), [e[1] for e in each], rtol=0, atol=1e-12)
