@@ -54,9 +54,8 @@ MAX_PINNED = 500
 """Most values held at zero that :func:`polish`'s preconditioner corrects for exactly (the
 most strongly held ones; the rest are only masked). The k × k gather and Cholesky factor
 cost O(k²) and O(k³) per round, and beyond a few hundred values they cost more than the
-CG steps a fuller correction saves: the real frames under the G = 1 sensor map hold
-thousands of values at zero, and the weight search's solves there took 16 s at 2000
-against 3 s at 500, with the same weight (docs, speed)."""
+CG steps a fuller correction saves (measured where thousands of values are held, the real
+frames under the G = 1 sensor map: docs, speed)."""
 
 MAX_ROUNDS = 30
 """Newton rounds before giving up (the last iterate, never worse than the start, is kept)."""
