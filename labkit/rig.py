@@ -261,6 +261,7 @@ SCENE_OPTIONS = {
     "disks": ("radius_px", "pitch_px"),
     "colorchecker": ("reflectances",),
     "texture": ("seed",),
+    "natural": ("seed",),
     "flat": ("reflectance",),
 }
 
@@ -268,7 +269,7 @@ SCENE_OPTIONS = {
 class SimSceneConfig(_Strict):
     """A simulated scene: its type and geometry parameters."""
 
-    type: Literal["disks", "colorchecker", "texture", "flat"]
+    type: Literal["disks", "colorchecker", "texture", "natural", "flat"]
     radius_px: PositiveFloat | None = None
     pitch_px: PositiveFloat | None = None
     reflectances: str | None = None

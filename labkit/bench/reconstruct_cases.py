@@ -18,7 +18,7 @@ from labkit.bench.harness import Measurement, peak_rss_mib
 from labkit.bench.real_frames import (
     patch_cost,
 )
-from labkit.rig import load_rig
+from labkit.rig import SCENE_OPTIONS, SimSceneConfig, load_rig
 
 SHAPE = (344, 408)
 VARIANT_SHAPE = (172, 204)
@@ -72,8 +72,10 @@ def simulated_case(
 ) -> dict[str, Any]:
     """Raw image, dispersion model and ground truth of one simulated scene.
 
-    `flat_fraction` > 0 replaces that fraction of the columns (on the right) by a flat grey
-    wall, for the adaptive-skipping comparison. `illumination` names the light (a filter
+    `scene` names one of the rig's scenes, or a scene type it does not define (e.g.
+    ``"natural"``), built with its defaults. `flat_fraction` > 0 replaces that fraction
+    of the columns (on the right) by a flat grey wall, for the adaptive-skipping
+    comparison. `illumination` names the light (a filter
     of the rig's slider for narrow-band light); `max_shift_px` replaces the lens' largest
     lateral chromatic aberration (px, corners, 400–700 nm).
     """
@@ -82,6 +84,9 @@ def simulated_case(
     from labkit.sim.truth import colour_truth, spectral_truth
 
     rig = load_rig(rig_path)
+    if scene not in rig.sim.scenes and scene in SCENE_OPTIONS:  # a scene type the rig lacks
+        scenes = {**rig.sim.scenes, scene: SimSceneConfig(type=scene)}
+        rig = rig.model_copy(update={"sim": rig.sim.model_copy(update={"scenes": scenes})})
     if max_shift_px is not None:
         lens = rig.sim.lens.model_copy(update={"max_shift_px": float(max_shift_px)})
         rig = rig.model_copy(update={"sim": rig.sim.model_copy(update={"lens": lens})})

@@ -19,6 +19,7 @@ from labkit.sim.scenes import (
     colorchecker_patch_boxes,
     disk_pattern,
     flat_field,
+    natural_scene,
     textured_scene,
 )
 from labkit.sim.sensor import Sensor, SensorModel
@@ -43,6 +44,7 @@ __all__ = [
     "colorchecker_patch_boxes",
     "disk_pattern",
     "flat_field",
+    "natural_scene",
     "refractive_index",
     "render_irradiance",
     "textured_scene",

@@ -13,7 +13,9 @@ dispersion without resampling a raster:
   better than 12× supersampling), only for boxes that straddle a disk edge.
 
 The thesis' scenes (§4.2): the black-disk calibration pattern, a ColorChecker chart in
-its frame, and a textured scene (binary noise, text-like strokes, saturated colours).
+its frame, and a textured scene (binary noise, text-like strokes, saturated colours);
+and beyond the thesis a natural-like scene (dead leaves of smooth, mostly unsaturated
+reflectances) for validation on image statistics closer to the field's.
 """
 
 from __future__ import annotations
@@ -318,4 +320,70 @@ def textured_scene(
     return Scene("texture", materials, CellGrid(labels, cell, origin=(-0.5 - cell, -0.5 - cell)))
 
 
-SCENES = {"disks": disk_pattern, "colorchecker": colorchecker_chart, "texture": textured_scene}
+DEAD_LEAVES_COVER = 6.0
+"""How many times over the dead-leaves scene's disks cover the view on average (the cells
+none reaches take their nearest disk's material)."""
+
+
+def natural_scene(
+    shape: tuple[int, int],
+    *,
+    seed: int = 0,
+    smallest_px: float = 1.5,
+    materials: int = 24,
+) -> Scene:
+    """A natural-like scene: dead leaves of natural-like reflectances.
+
+    Occluding disks (each in front of those drawn after it) whose radii follow the
+    scale-invariant density r⁻³ between `smallest_px` and a quarter of the view's smaller
+    side — the dead-leaves model, whose edges and power spectrum are those of natural
+    images. Each disk takes one of `materials` reflectances, each a random convex mixture
+    of three ColorChecker patches (Dirichlet weights), so that the spectra are smooth and
+    mostly unsaturated, as natural surfaces are. Geometry on a 1 px cell grid.
+    """
+    rng = np.random.default_rng(seed)
+    rows, cols = shape
+    largest = max(min(rows, cols) / 4.0, smallest_px)
+    grid_rows, grid_cols = rows + 2, cols + 2
+    labels = np.full((grid_rows, grid_cols), -1, dtype=np.int32)
+    yy, xx = np.arange(grid_rows), np.arange(grid_cols)
+    # enough disks to cover the view about DEAD_LEAVES_COVER times over (mean disk area
+    # under the r⁻³ density: 2π r_min² ln(r_max / r_min) / (1 − (r_min / r_max)²))
+    ratio = smallest_px / largest
+    mean_area = 2 * np.pi * smallest_px**2 * np.log(1 / ratio) / max(1 - ratio**2, 1e-12)
+    count = int(DEAD_LEAVES_COVER * grid_rows * grid_cols / max(mean_area, 1.0)) + 1
+    radii = (smallest_px**-2 - rng.random(count) * (smallest_px**-2 - largest**-2)) ** -0.5
+    centres_y = rng.uniform(-radii, grid_rows + radii)
+    centres_x = rng.uniform(-radii, grid_cols + radii)
+    leaves = rng.integers(materials, size=count)
+    for radius, cy, cx, leaf in zip(radii, centres_y, centres_x, leaves, strict=True):
+        r0, r1 = max(0, int(cy - radius)), min(grid_rows, int(cy + radius) + 2)
+        c0, c1 = max(0, int(cx - radius)), min(grid_cols, int(cx + radius) + 2)
+        if r0 >= r1 or c0 >= c1:
+            continue
+        inside = (yy[r0:r1, None] - cy) ** 2 + (xx[None, c0:c1] - cx) ** 2 <= radius**2
+        window = labels[r0:r1, c0:c1]
+        window[inside & (window < 0)] = leaf  # earlier disks stay in front
+    if (labels < 0).any():  # the few cells no disk reached: their nearest leaf's
+        import scipy.ndimage
+
+        nearest = scipy.ndimage.distance_transform_edt(
+            labels < 0, return_distances=False, return_indices=True
+        )
+        labels = labels[tuple(nearest)]
+    chart = colorchecker_reflectances("measured")
+    picks = np.stack(
+        [rng.choice(chart.values.shape[1], 3, replace=False) for _ in range(materials)]
+    )
+    mixing = rng.dirichlet(np.ones(3), size=materials)
+    values = np.einsum("wmk,mk->wm", chart.values[:, picks], mixing)
+    spectra = Spectra(chart.wavelengths, values, tuple(f"leaf {k}" for k in range(materials)))
+    return Scene("natural", spectra, CellGrid(labels, 1.0, origin=(-1.5, -1.5)))
+
+
+SCENES = {
+    "disks": disk_pattern,
+    "colorchecker": colorchecker_chart,
+    "texture": textured_scene,
+    "natural": natural_scene,
+}

@@ -17,7 +17,14 @@ from labkit.errors import ConfigError
 from labkit.rig import Rig, SimSceneConfig
 from labkit.sim.lens import Lens
 from labkit.sim.render import render_irradiance
-from labkit.sim.scenes import Scene, colorchecker_chart, disk_pattern, flat_field, textured_scene
+from labkit.sim.scenes import (
+    Scene,
+    colorchecker_chart,
+    disk_pattern,
+    flat_field,
+    natural_scene,
+    textured_scene,
+)
 from labkit.sim.sensor import Sensor, SensorModel
 from labkit.spectra import camera_response, illuminant, trapezoid_weights, wavelength_grid
 
@@ -153,6 +160,7 @@ _SCENE_BUILDERS = {
     "disks": disk_pattern,
     "colorchecker": colorchecker_chart,
     "texture": textured_scene,
+    "natural": natural_scene,
     "flat": flat_field,
 }
 

@@ -67,8 +67,31 @@ def test_a_row_runs_end_to_end(sim_rig_path: Path, tmp_path: Path, monkeypatch) 
         assert m.extra["cpu_s"] > 0 and m.seconds > 0
     assert "spectral_smoothness" in results[0].extra["choices"]
     assert "spectral_smoothness" not in results[1].extra["choices"]  # given
-    table, errors, plot = notes
+    table, errors, colour, plot = notes
     assert isinstance(table, Table) and len(table.rows) == 1
     assert len(errors.rows) == 1 and len(errors.rows[0]) == 3
     assert sum(cell.startswith("**") for cell in errors.rows[0][1:]) >= 1  # the best, bold
+    assert colour.title.startswith("colour_rmse") and len(colour.rows) == 1
     assert isinstance(plot, Plot) and (tmp_path / plot.file).stat().st_size > 0
+    # the defaults are held to the time target, the variants only reported
+    assert results[0].target_s == matrix.TARGET_S
+    assert results[0].passed == (results[0].seconds <= matrix.TARGET_S)
+    assert results[1].target_s is None and results[1].passed is None
+
+
+def test_every_measure_gets_a_table_of_the_rows_that_record_it() -> None:
+    """Judged measures first (in the rows' order), then colour_rmse, which is only
+    reported; a row without a measure is left out of its table, not shown as dashes."""
+    results = [
+        _m("a", "defaults", spectral_rmse=0.1, ca_rg_px=None, colour_rmse=0.02),
+        _m("a", "σ = 0", spectral_rmse=0.2, ca_rg_px=None, colour_rmse=0.01),
+        _m("b", "defaults", spectral_rmse=0.3, ca_rg_px=0.05),
+        _m("b", "σ = 0", spectral_rmse=0.1, ca_rg_px=0.04),
+    ]
+    assert matrix.reported_measures(results) == ["spectral_rmse", "ca_rg_px", "colour_rmse"]
+    ca = matrix.error_table(results, "ca_rg_px")
+    assert [line[0] for line in ca.rows] == ["b"]
+    assert ca.rows[0][2].startswith("**0.0400")
+    colour = matrix.error_table(results, "colour_rmse")
+    assert [line[0] for line in colour.rows] == ["a"]
+    assert matrix.reported_measures(results[2:]) == ["spectral_rmse", "ca_rg_px"]
