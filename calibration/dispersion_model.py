@@ -247,12 +247,7 @@ class DispersionModel:
                 raise DataError("this spectral dispersion model needs wavelength_nm")
             if channel is not None:
                 raise DataError("channel= applies to colour-channel models, not spectral ones")
-            x, y, wavelength_nm = (np.asarray(v, np.float64) for v in (x, y, wavelength_nm))
-            if self.extrapolation == "clamp":
-                # before broadcasting: positions given once for many wavelengths are moved
-                # once (the hull's nearest point costs far more than the polynomial)
-                x, y, wavelength_nm = self._clamped(x, y, wavelength_nm)
-            arrays = np.broadcast_arrays(x, y, wavelength_nm)
+            given = (x, y, wavelength_nm)
             fld = self.fields[SPECTRAL]
         else:
             if wavelength_nm is not None:
@@ -260,36 +255,31 @@ class DispersionModel:
                     "this colour-channel dispersion model takes channel=, not wavelength_nm; "
                     f"channels: {', '.join(self.channels)}"
                 )
-            x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
-            if self.extrapolation == "clamp":
-                x, y, _ = self._clamped(x, y, None)
-            arrays = np.broadcast_arrays(x, y)
             if channel == self.reference:
-                zero = np.zeros(arrays[0].shape)
+                zero = np.zeros(np.broadcast_shapes(np.shape(x), np.shape(y)))
                 return zero, zero.copy()
             if channel not in self.fields:
                 raise DataError(
                     f"channel {channel!r} not in this model; use one of "
                     f"{', '.join([str(self.reference), *self.channels])}"
                 )
+            given = (x, y)
             fld = self.fields[channel]
+        given = tuple(np.asarray(v, np.float64) for v in given)
+        if not all(np.all(np.isfinite(v)) for v in given):
+            raise DataError("dispersion model inputs hold NaN or Inf")
+        if self.extrapolation == "clamp":
+            # before broadcasting: positions given once for many wavelengths are moved
+            # once (the hull's nearest point costs far more than the polynomial)
+            x_in, y_in, wave_in = self.region.clamp(*given[:2], *given[2:])
+            given = (x_in, y_in) if wave_in is None else (x_in, y_in, wave_in)
+        arrays = np.broadcast_arrays(*given)
         shape = arrays[0].shape
         points = np.column_stack([a.ravel() for a in arrays])
-        if not np.all(np.isfinite(points)):
-            raise DataError("dispersion model inputs hold NaN or Inf")
         out = np.empty((points.shape[0], 2))
         for start in range(0, points.shape[0], CHUNK_POINTS):
             out[start : start + CHUNK_POINTS] = fld.evaluate(points[start : start + CHUNK_POINTS])
         return out[:, 0].reshape(shape), out[:, 1].reshape(shape)
-
-    def _clamped(
-        self, x: np.ndarray, y: np.ndarray, wavelength_nm: np.ndarray | None
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-        """Inputs moved into the calibrated region (x and y broadcast with each other)."""
-        given = (x, y) if wavelength_nm is None else (x, y, wavelength_nm)
-        if not all(np.all(np.isfinite(v)) for v in given):
-            raise DataError("dispersion model inputs hold NaN or Inf")
-        return self.region.clamp(x, y, wavelength_nm)
 
     # -- files ----------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:

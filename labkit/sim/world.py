@@ -17,14 +17,7 @@ from labkit.errors import ConfigError
 from labkit.rig import Rig, SimSceneConfig
 from labkit.sim.lens import Lens
 from labkit.sim.render import render_irradiance
-from labkit.sim.scenes import (
-    Scene,
-    colorchecker_chart,
-    disk_pattern,
-    flat_field,
-    natural_scene,
-    textured_scene,
-)
+from labkit.sim.scenes import SCENES, Scene, flat_field
 from labkit.sim.sensor import Sensor, SensorModel
 from labkit.spectra import camera_response, illuminant, trapezoid_weights, wavelength_grid
 
@@ -156,13 +149,7 @@ class SimulatedRig:
             self._cache.clear()
 
 
-_SCENE_BUILDERS = {
-    "disks": disk_pattern,
-    "colorchecker": colorchecker_chart,
-    "texture": textured_scene,
-    "natural": natural_scene,
-    "flat": flat_field,
-}
+_SCENE_BUILDERS = {**SCENES, "flat": flat_field}
 
 
 def _build_scene(cfg: SimSceneConfig, shape: tuple[int, int]) -> Scene:

@@ -174,11 +174,10 @@ class Dispersion(LinearOperator):
             all_x, all_y = model.displacement(
                 (xx + col0)[..., None], (yy + row0)[..., None], self.wavelengths_nm
             )
-        for j, band in enumerate(bands):
-            if self.wavelengths_nm is not None:
-                ex, ey = all_x[..., j], all_y[..., j]
-            else:
-                ex, ey = model.displacement(xx + col0, yy + row0, **band)
+            fields = [(all_x[..., j], all_y[..., j]) for j in range(len(bands))]
+        else:
+            fields = [model.displacement(xx + col0, yy + row0, **band) for band in bands]
+        for band, (ex, ey) in zip(bands, fields, strict=True):
             if not (np.all(np.isfinite(ex)) and np.all(np.isfinite(ey))):
                 raise DataError(f"the dispersion model gives NaN or Inf displacements at {band}")
             max_shift = max(max_shift, float(np.sqrt(np.max(ex * ex + ey * ey))))
