@@ -301,7 +301,7 @@ class ImageFormation(LinearOperator):
         """
         bands = _own_bands(self.colour_matrices)
         if bands is not None:
-            return self._combined_per_band(dispersion.matrices, bands)
+            return self._combined_per_band(dispersion, bands)
         rows, cols = self.domain_shape[:2]
         npx, n = rows * cols, self.domain_shape[2]
         taps = dispersion.taps
@@ -385,27 +385,46 @@ class ImageFormation(LinearOperator):
         matrix.eliminate_zeros()
         return matrix
 
-    def _combined_per_band(self, matrices: list[sp.csr_matrix], bands: np.ndarray) -> sp.csr_matrix:
+    def _combined_per_band(self, dispersion: Dispersion, bands: np.ndarray) -> sp.csr_matrix:
         """:meth:`_combined` where sample j sees band ``bands[j]`` alone (a band-centre
-        response): each Φ_j, scaled per raw pixel by its colour, fills its band's columns,
-        which no other sample shares, so the sum is a merge with no sort and no products
-        to add up (the same matrix, to the bit, as the general route)."""
-        npx = int(np.prod(self.domain_shape[:2]))
-        n = self.domain_shape[2]
+        response): no two samples share a column, so nothing is added up and each raw
+        pixel's row is its samples' stencils side by side, read straight from Φ's taps.
+
+        The row keeps the stencils' order (sample, row tap, column tap), not the columns'
+        (a product does not need sorted columns); a source that two taps of one stencil
+        reach (a patch narrower than the stencil) stays two entries, which a product adds.
+        """
+        rows, cols = self.domain_shape[:2]
+        npx, n = rows * cols, self.domain_shape[2]
+        taps = dispersion.taps
+        samples, width, _ = taps.offsets_y.shape
+        pixel_rows, pixel_cols = np.divmod(np.arange(npx), cols)
         channel = self.channel_index.ravel()
-        total = None
-        for j, matrix in enumerate(matrices):
-            band = int(bands[j])
-            if not matrix.has_canonical_format:  # sorted, unique columns per row
-                matrix = matrix.copy()
-                matrix.sum_duplicates()
-            colour = self.colour_matrices[j][channel, band]
-            values = matrix.data * np.repeat(colour, np.diff(matrix.indptr))
-            columns = matrix.indices.astype(np.int64) * n + band
-            part = sp.csr_matrix((values, columns, matrix.indptr), shape=(npx, npx * n))
-            part.eliminate_zeros()
-            total = part if total is None else total + part
-        return total
+        colour = self.colour_matrices[np.arange(samples), :, bands][:, channel]  # (J, px)
+        entries = samples * width * width
+        index = np.int32 if npx * n < np.iinfo(np.int32).max else np.int64
+        # each row in the order (row tap, sample, column tap): its sources then run nearly
+        # in order, as a product reads the latent image best
+        source_rows = ((pixel_rows + taps.offsets_y) % rows * (cols * n)).astype(index)
+        source_cols = ((pixel_cols + taps.offsets_x) % cols * n + bands[:, None, None]).astype(
+            index
+        )  # both (J, taps, px), in units of the latent image's flat index
+        shape = (npx, width, samples, width)  # written in this order (ravel copies nothing)
+        columns = np.add(
+            source_rows.transpose(2, 1, 0)[:, :, :, None],
+            source_cols.transpose(2, 0, 1)[:, None],
+            out=np.empty(shape, dtype=index),
+        )
+        row_weights = (taps.weights_y * colour[:, None, :]).transpose(2, 1, 0)
+        values = np.multiply(
+            row_weights[:, :, :, None],
+            taps.weights_x.transpose(2, 0, 1)[:, None],
+            out=np.empty(shape),
+        )
+        indptr = np.arange(0, npx * entries + 1, entries, dtype=index)
+        matrix = sp.csr_matrix((values.ravel(), columns.ravel(), indptr), shape=(npx, npx * n))
+        matrix.eliminate_zeros()  # integer sample points need one weight, not all
+        return matrix
 
     def _forward(self, x: np.ndarray) -> np.ndarray:
         x = x.astype(np.float64, copy=False)

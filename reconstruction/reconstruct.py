@@ -17,6 +17,7 @@ files (:mod:`reconstruction.result`).
 
 from __future__ import annotations
 
+import os
 import time
 import warnings
 from collections.abc import Callable, Sequence
@@ -321,6 +322,14 @@ def prepare_problem(
     )
 
 
+def weight_search_workers(scheduler: Any) -> int:
+    """Threads the weight search may use: 2 (it solves two weights at a time at most)
+    unless the patches run on one thread (a ``sync`` scheduler) or the machine has one core."""
+    if isinstance(scheduler, str) and scheduler in ("sync", "synchronous", "single-threaded"):
+        return 1
+    return min(2, os.cpu_count() or 1)
+
+
 def choose_weights(job: PreparedProblem, *, truth: np.ndarray | None = None) -> tuple[float, ...]:
     """Stage 2: the prior weights, fixed or chosen on representative patches (§3.6,
     without dispersion); records the choice in ``job.log["weights"]``.
@@ -376,6 +385,7 @@ def choose_weights(job: PreparedProblem, *, truth: np.ndarray | None = None) -> 
             truths=truths or None,
             truth_matrix=_spectral_matrix(job.space) if criterion == "msec" else None,
             exact=job.choices.exact_weights,
+            workers=weight_search_workers(o.scheduler),
         )
         chosen = selection.weights
         entry = {

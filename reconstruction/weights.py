@@ -58,7 +58,9 @@ solves at w = ε, whose exact optimum only the ridge fixes.
 from __future__ import annotations
 
 import itertools
+import threading
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -152,28 +154,43 @@ class _Evaluator:
         # rounds reach from in fewer steps than from the initial estimate (docs, speed).
         self.exact = bool(solve_options.get("exact_nonneg"))
         self.own_starts = self.exact or any(t.norm == 1 for t in self.problems[0].terms)
+        self._lock = threading.Lock()  # solutions() may run on several threads (prefetch)
 
     def solutions(self, weights: tuple[float, ...]) -> list[np.ndarray]:
-        if weights not in self._cache:
+        with self._lock:
+            cached = self._cache.get(weights)
+            if cached is not None:
+                return cached
             start = self._nearest(weights) if self.exact or not self.own_starts else None
-            out = []
-            for i, p in enumerate(self.problems):
-                if self.exact:
-                    x0 = None if start is None else start[i]
-                elif self.own_starts:
-                    x0 = None  # solve()'s default: initial_estimate at these weights
-                elif start is None:
-                    # the first weight starts from zeros (Algorithm 3): from solve()'s
-                    # default, the unconstrained optimum, ADMM at a tiny weight barely moves
-                    # before its test stops it, and the criteria then favour weights near
-                    # machine epsilon
-                    x0 = np.zeros(p.shape)
-                else:
-                    x0 = start[i]
-                out.append(solve(p.with_weights(weights), x0=x0, **self.solve_options).latent)
-                self.solves += 1
-            self._cache[weights] = out
-        return self._cache[weights]
+        out = []
+        for i, p in enumerate(self.problems):
+            if self.exact:
+                x0 = None if start is None else start[i]
+            elif self.own_starts:
+                x0 = None  # solve()'s default: initial_estimate at these weights
+            elif start is None:
+                # the first weight starts from zeros (Algorithm 3): from solve()'s
+                # default, the unconstrained optimum, ADMM at a tiny weight barely moves
+                # before its test stops it, and the criteria then favour weights near
+                # machine epsilon
+                x0 = np.zeros(p.shape)
+            else:
+                x0 = start[i]
+            out.append(solve(p.with_weights(weights), x0=x0, **self.solve_options).latent)
+        with self._lock:
+            self.solves += len(out)
+            return self._cache.setdefault(weights, out)
+
+    def prefetch(self, candidates: Sequence[tuple[float, ...]], workers: int) -> None:
+        """Solve the `candidates` not yet solved on up to `workers` threads at once (their
+        scores then come from the cache, in the search's own order). Only for searches
+        whose solves do not depend on their order (:attr:`own_starts`)."""
+        with self._lock:
+            missing = [w for w in dict.fromkeys(candidates) if w not in self._cache]
+        if workers < 2 or len(missing) < 2 or not self.own_starts:
+            return
+        with ThreadPoolExecutor(min(workers, len(missing))) as pool:
+            list(pool.map(self.solutions, missing))
 
     def _nearest(self, weights: tuple[float, ...]) -> list[np.ndarray] | None:
         if not self._cache:
@@ -235,6 +252,7 @@ def select_weights(
     max_iter: int = 300,
     exact: bool = False,
     progress: Callable[[int, float], None] | None = None,
+    workers: int = 1,
 ) -> WeightSelection:
     """Choose the prior weights by a criterion evaluated on patch solves (§3.6).
 
@@ -268,6 +286,11 @@ def select_weights(
         the weight chosen does not depend on any solver tolerance.
     progress : callable, optional
         ``progress(round, best_value)`` after each round.
+    workers : int
+        Threads on which the bracketing walk of a single weight solves its next two
+        weights at once (:func:`_first_minimum_bracket`); 1: one after the other. The
+        weights and scores are those of the serial walk (its solves do not depend on
+        their order), so the choice is the same.
 
     Raises
     ------
@@ -301,8 +324,14 @@ def select_weights(
 
     # Brent's steps need a criterion that is a function of the weight alone: exact solves,
     # or solves from each weight's own start, not warm starts that follow the search's path
-    search = _brent if evaluate.own_starts and count == 1 else _grid_search
-    rounds, weights, value = search(score, count, progress)
+    if evaluate.own_starts and count == 1:
+
+        def prefetch(log_weights: Sequence[float]) -> None:
+            evaluate.prefetch([(float(10.0**v),) for v in log_weights], workers)
+
+        rounds, weights, value = _brent(score, count, progress, prefetch)
+    else:
+        rounds, weights, value = _grid_search(score, count, progress)
     return WeightSelection(weights, criterion, value, rounds, evaluate.solves, path)
 
 
@@ -310,6 +339,7 @@ def _brent(
     score: Callable[[tuple[float, ...]], float],
     count: int,
     progress: Callable[[int, float], None] | None,
+    prefetch: Callable[[Sequence[float]], None] | None = None,
 ) -> tuple[int, tuple[float, ...], float]:
     """The local minimum of one log10 weight nearest :data:`SCAN_START`, downhill: (solves,
     best weights, best value).
@@ -332,7 +362,9 @@ def _brent(
                 progress(len(values), min(values.values()))
         return values[log_weight]
 
-    low, high = _first_minimum_bracket(criterion, np.log10(LOWEST), np.log10(HIGHEST))
+    low, high = _first_minimum_bracket(
+        criterion, np.log10(LOWEST), np.log10(HIGHEST), prefetch=prefetch
+    )
     # it stops once the bracket around its best point is at most 4/3 xatol wide
     scipy.optimize.minimize_scalar(
         criterion,
@@ -345,19 +377,34 @@ def _brent(
 
 
 def _first_minimum_bracket(
-    criterion: Callable[[float], float], lowest: float, highest: float
+    criterion: Callable[[float], float],
+    lowest: float,
+    highest: float,
+    *,
+    prefetch: Callable[[Sequence[float]], None] | None = None,
 ) -> tuple[float, float]:
     """(low, high) log10 weights around the first local minimum a walk from
-    :data:`SCAN_START` meets; a bound where the criterion falls all the way to it."""
+    :data:`SCAN_START` meets; a bound where the criterion falls all the way to it.
+
+    `prefetch` is given the next two weights before each step: it may solve them at once
+    (the walk goes on to the second unless the first ends it, so that solve is rarely
+    wasted), and the criterion then reads them in the walk's order."""
 
     def rises(after: float, before: float) -> bool:
         return criterion(after) > criterion(before) + SCAN_RISE * abs(criterion(before))
 
+    def clip(value: float) -> float:
+        return min(max(value, lowest), highest)
+
     start = min(max(SCAN_START, lowest), highest - SCAN_STEP)
+    if prefetch:
+        prefetch([start, start + SCAN_STEP])
     step = SCAN_STEP if not rises(start + SCAN_STEP, start) else -SCAN_STEP
     behind, at = (start, start + step) if step > 0 else (start + SCAN_STEP, start)
     while True:
-        ahead = min(max(at + step, lowest), highest)
+        ahead = clip(at + step)
+        if prefetch:
+            prefetch([ahead, clip(ahead + step)])
         if ahead == at or rises(ahead, at):
             return (min(behind, ahead), max(behind, ahead))
         behind, at = at, ahead

@@ -185,6 +185,7 @@ def polish(
     cg_max_iter: int = 200,
     max_rounds: int = MAX_ROUNDS,
     correct_active: bool | None = None,
+    kkt_tolerance: float = KKT_TOLERANCE,
 ) -> tuple[np.ndarray, PolishReport]:
     """The exact non-negative optimum of `problem`, warm-started at `x_start` (≥ 0).
 
@@ -209,6 +210,8 @@ def polish(
         is K itself (no Φ, so CG takes one or two steps); with Φ, K̃ is an
         approximation anyway and the correction costs more than the CG steps it saves
         (figures in the README, how it works).
+    kkt_tolerance : float
+        The KKT residual at which it stops, relative to ‖2Aᵀy‖ (:func:`_satisfies_kkt`).
 
     Returns
     -------
@@ -281,7 +284,7 @@ def polish(
         clipped = bool(np.any(x + step * direction < 0))
         x, value = trial, trial_value
         gradient = apply(x) - b
-        if _satisfies_kkt(x, gradient, scale_b) and not clipped:
+        if _satisfies_kkt(x, gradient, scale_b, kkt_tolerance) and not clipped:
             report.status = "optimal"
             return x, report
         if result.iterations == 0:  # the solve had nothing left at this tolerance
@@ -291,11 +294,13 @@ def polish(
     return x, report
 
 
-def _satisfies_kkt(x: np.ndarray, gradient: np.ndarray, scale_b: float) -> bool:
-    """Whether x ≥ 0 with gradient ``Kx − b`` is optimal to :data:`KKT_TOLERANCE` · `scale_b`:
-    the gradient vanishes on positive values and pushes outwards on zeros."""
+def _satisfies_kkt(
+    x: np.ndarray, gradient: np.ndarray, scale_b: float, tolerance: float = KKT_TOLERANCE
+) -> bool:
+    """Whether x ≥ 0 with gradient ``Kx − b`` is optimal to `tolerance` · `scale_b`: the
+    gradient vanishes on positive values and pushes outwards on zeros."""
     violation = np.where(x > 0, np.abs(gradient), np.maximum(-gradient, 0.0))
-    return float(np.linalg.norm(violation)) <= KKT_TOLERANCE * scale_b
+    return float(np.linalg.norm(violation)) <= tolerance * scale_b
 
 
 def _most_negative(x: np.ndarray, candidates: np.ndarray, count: int) -> np.ndarray:

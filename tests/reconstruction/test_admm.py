@@ -384,8 +384,9 @@ def test_finish_with_dispersion_masks_the_preconditioner(monkeypatch: pytest.Mon
 
 def test_direct_exact_solve_with_dispersion_and_smoothness(monkeypatch: pytest.MonkeyPatch) -> None:
     """Φ (the rig's corner, up to 2 px) and σ = 1e-3: ``direct=True`` reaches the KKT point by
-    projected Newton from the initial estimate without any ADMM iteration, within 1e-8 of a
-    tight ADMM solve's objective (ε_rel 1e-9, 69 iterations) and below the default solve's;
+    projected Newton from the initial estimate without any ADMM iteration, within 1e-6 of a
+    tight ADMM solve's objective (ε_rel 1e-9, 69 iterations; it stops at the KKT residual
+    :data:`DIRECT_KKT_TOLERANCE`, 1e-5) and below the default solve's;
     where the rounds do not settle it is plain ADMM again. However many values start at
     zero: the limit on them (:data:`DIRECT_MAX_ZEROS`) is the dual method's, without Φ."""
     import reconstruction.solvers.admm as admm
@@ -402,7 +403,7 @@ def test_direct_exact_solve_with_dispersion_and_smoothness(monkeypatch: pytest.M
     assert direct.report.iterations == 0 and direct.report.polish.status == "optimal"
     assert direct.report.converged and direct.latent.min() >= 0
     assert kkt_violation(p, direct.latent) < 1e-5
-    assert direct.report.objective <= tight.report.objective * (1 + 1e-8)  # measured 1.3e-9
+    assert direct.report.objective <= tight.report.objective * (1 + 1e-6)  # measured 2.4e-7
     assert direct.report.objective < default.report.objective
     polish = admm.polish
     monkeypatch.setattr(admm, "polish", lambda *a, **k: polish(*a, **k, max_rounds=1))

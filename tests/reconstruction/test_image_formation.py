@@ -373,22 +373,37 @@ def test_each_band_of_a_sensor_map_is_warped_by_its_own_dispersion() -> None:
 def test_a_sensor_map_folds_phi_per_band_to_the_same_matrix(
     interpolation: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """Where each dispersion sample sees one band of its own, Φ is folded band by band
-    (a merge) instead of through the general route's sort of every (pixel, source) pair:
-    the same sparse matrix, structure and values to the bit, radial dispersion up to 1.5 px."""
+    """Where each dispersion sample sees one band of its own, Φ's taps are laid side by
+    side per raw pixel instead of going through the general route's table of (pixel,
+    source) pairs: the same entries (each value to 1e-15: the weights are multiplied in
+    another order), only their order within a row differs; radial dispersion up to 1.5 px,
+    and a patch narrower than the stencil, where a source repeats within a row."""
     import reconstruction.image_formation as formation_module
 
     space = sensor_map_space()
     model = spectral_model(RadialField(0.05))
-    fast = build_formation(
-        space, (24, 36), "GBRG", model=model, origin=(8, 10), interpolation=interpolation
-    )
-    monkeypatch.setattr(formation_module, "_own_bands", lambda colour: None)
-    general = build_formation(
-        space, (24, 36), "GBRG", model=model, origin=(8, 10), interpolation=interpolation
-    )
-    for name in ("indptr", "indices", "data"):
-        np.testing.assert_array_equal(getattr(fast._matrix, name), getattr(general._matrix, name))
+    own_bands = formation_module._own_bands
+    for shape in [(24, 36), (2, 36)]:
+        monkeypatch.setattr(formation_module, "_own_bands", own_bands)
+        fast = build_formation(
+            space, shape, "GBRG", model=model, origin=(8, 10), interpolation=interpolation
+        )
+        monkeypatch.setattr(formation_module, "_own_bands", lambda colour: None)
+        general = build_formation(
+            space, shape, "GBRG", model=model, origin=(8, 10), interpolation=interpolation
+        )
+        # a stencil wider than the patch reaches a source twice: two entries, added by products
+        assert (fast._matrix.nnz > general._matrix.nnz) == (
+            shape[0] < 4 and interpolation == "cubic"
+        )
+        canonical = fast._matrix.copy()
+        canonical.sum_duplicates()
+        np.testing.assert_array_equal(canonical.indptr, general._matrix.indptr)
+        np.testing.assert_array_equal(canonical.indices, general._matrix.indices)
+        np.testing.assert_allclose(canonical.data, general._matrix.data, rtol=1e-15, atol=1e-16)
+        x = np.random.default_rng(1).random(fast.domain_shape)
+        np.testing.assert_allclose(fast.forward(x), general.forward(x), rtol=1e-14)
+        assert dot_test(fast, rng=np.random.default_rng(2)).relative_error < 1e-10
 
 
 def test_own_bands_only_where_every_sample_sees_one_band_alone() -> None:

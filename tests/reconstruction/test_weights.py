@@ -119,6 +119,48 @@ def test_exact_search_starts_from_the_nearest_optimum(monkeypatch: pytest.Monkey
     assert warm.value == pytest.approx(cold.value, rel=1e-5)
 
 
+def test_the_walk_on_two_threads_chooses_what_the_serial_walk_chooses(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """With ``workers=2`` the bracketing walk solves its next two weights at once: the
+    search visits the same weights in the same order, scores them alike (exact optima
+    reached from other starts) and chooses the same weight; pairs did run on two threads at once,
+    and at most one speculative solve per pair is left unused."""
+    import threading
+
+    problem = textured_problem()
+    guided = Problem(
+        problem.formation, problem.raw, PRIORS["EdgeL2"], (1.0,), True, smoothness=1e-3
+    )
+    serial = select_weights([guided], criterion="dmc", exact=True)
+    running, overlapped = set(), []
+    lock = threading.Lock()
+    solve_exact = weights_module.solve
+
+    def tracking(p: Problem, **kwargs: object):
+        with lock:
+            running.add(threading.get_ident())
+            overlapped.append(len(running) > 1)
+        try:
+            return solve_exact(p, **kwargs)
+        finally:
+            with lock:
+                running.discard(threading.get_ident())
+
+    monkeypatch.setattr(weights_module, "solve", tracking)
+    paired = select_weights([guided], criterion="dmc", exact=True, workers=2)
+    assert any(overlapped)
+    assert len(paired.path) == len(serial.path)
+    for a, b in zip(paired.path, serial.path, strict=True):
+        assert a["weights"] == pytest.approx(b["weights"], rel=1e-6)  # measured: 2e-10
+        # at the walk's tiny weights only the ridge holds some directions, and the optima
+        # reached from other starts differ there within the KKT tolerance (measured 7e-4)
+        assert a["value"] == pytest.approx(b["value"], rel=1e-3)
+    assert paired.weights == pytest.approx(serial.weights, rel=1e-6)  # measured: 1e-9
+    assert paired.value == pytest.approx(serial.value, rel=1e-9)
+    assert serial.solves <= paired.solves <= serial.solves + (serial.solves + 1) // 2
+
+
 @pytest.mark.parametrize("level", [3.0, 65535.0])
 def test_mdc_on_a_flat_image_returns_it_flat(level: float) -> None:
     """A flat image fits the data at every weight, so the MDC's misfit range is only the
@@ -145,7 +187,13 @@ def test_an_own_start_search_is_brents(criterion: str, monkeypatch: pytest.Monke
     textured = textured_problem()
     problem = Problem(textured.formation, textured.raw, PRIORS["VTV"], (1.0,), True)
     selection = select_weights([problem], criterion=criterion)
-    monkeypatch.setattr(weights_module, "_brent", weights_module._grid_search)
+    monkeypatch.setattr(
+        weights_module,
+        "_brent",
+        lambda score, count, progress, prefetch=None: weights_module._grid_search(
+            score, count, progress
+        ),
+    )
     grid = select_weights([problem], criterion=criterion)
     assert selection.value <= 1.02 * grid.value
     assert selection.solves < 0.6 * grid.solves
