@@ -439,21 +439,44 @@ def _synthesize(images: list, sensor: dict[str, Any], scene: str, out: Path) -> 
     return synthesis
 
 
+def calibrate_spectral(
+    images: list,
+    rig: Any,
+    *,
+    min_purity: float | None = None,
+    bands: Any = None,
+    rng: np.random.Generator | None = None,
+) -> Any:
+    """The demo's spectral calibration (``to_reference``, registration keypoints, reference
+    :data:`REFERENCE_BAND`, the filters' bands measured on the `images`) of the filtered
+    HDR `images` of one chart; `min_purity` as :func:`calibration.calibrate_dispersion`'s
+    (default its own: the 400 nm filter, whose light leaks, is left out; 0 keeps it);
+    `bands` are :func:`calibration.bands.filter_bands` of the rig and images (computed when
+    not given); `rng` draws the cross-validation folds (default: seeded 2019).
+    Returns the :class:`~calibration.dispersion_calibration.DispersionCalibration`."""
+    from calibration.bands import filter_bands
+    from calibration.dispersion_calibration import calibrate_dispersion
+
+    purity = {} if min_purity is None else {"min_purity": min_purity}
+    return calibrate_dispersion(
+        images,
+        reference=REFERENCE_BAND,
+        keypoints="registration",
+        direction="to_reference",
+        bands=bands if bands is not None else filter_bands(rig, images=images),
+        rng=rng if rng is not None else np.random.default_rng(2019),
+        workers=2,
+        **purity,
+    )
+
+
 def _calibrate(images: list, synthesis: Synthesis, rig, out: Path) -> dict[str, Any]:
     from calibration.bands import filter_bands
     from calibration.dispersion_calibration import calibrate_dispersion
 
     bands = filter_bands(rig, images=images)
     rng = np.random.default_rng(2019)
-    spectral = calibrate_dispersion(
-        images,
-        reference=REFERENCE_BAND,
-        keypoints="registration",
-        direction="to_reference",
-        bands=bands,
-        rng=rng,
-        workers=2,
-    )
+    spectral = calibrate_spectral(images, rig, bands=bands, rng=rng)
     colour = calibrate_dispersion([synthesis.raw], reference="G", keypoints="registration", rng=rng)
     summary = save_models(spectral, colour, out / "calibration")
     summary["bands"] = [

@@ -7,7 +7,11 @@ A default or an automatic policy is judged on rows of different kinds, not on on
   filtered frames): the whole image with the measured sensor map as the response in its
   two conventions, *levelled* (each band at the Green level the camera measured) and
   *G = 1* (the thesis' published normalisation: R and B relative to G, G the same in every
-  band); and two quadrants reaching its corners, each with the whole frame's model moved
+  band); the levelled whole image again with two other dispersion models: Φ at the
+  filters' nominal wavelengths (the model without its record of the filters' effective
+  wavelengths, as a response tabulated per filter was read before issue 53), and Φ
+  calibrated with the 400 nm filter too (whose light leaks: the default calibration leaves
+  it out); and two quadrants reaching its corners, each with the whole frame's model moved
   to the crop, as a user who calibrated once and reconstructs crops would;
 * **simulated** — the simulated rig's ColorChecker and textured scene under broadband
   light, the same under one 10 nm filter (narrow-band light), a disk chart behind a
@@ -319,15 +323,17 @@ def _rows(rig_path: Path, work: Path, wanted: Sequence[str] | None) -> list[Row]
         return wanted is None or any(w in name for w in wanted)
 
     rows: list[Row] = []
-    if keep("real"):
+    # the real rows cost a preparation of the frames: only when a wanted name may be one
+    if wanted is None or any("real" in w or w in "real" for w in wanted):
         rows += [r for r in real_rows(work / "real") if keep(r.name)]
     rows += simulated_rows(rig_path, keep=keep)
     return rows
 
 
 def real_rows(work: Path) -> list[Row]:
-    """The real ColorChecker rows: whole image (levelled and G = 1 sensor map) and two
-    quadrants with models calibrated on their own frames."""
+    """The real ColorChecker rows: whole image (levelled and G = 1 sensor map; Φ at the
+    nominal wavelengths, and calibrated with the 400 nm filter) and two quadrants with the
+    whole frame's model moved to the crop."""
     from labkit.demo_real import prepare_real_inputs
 
     real = prepare_real_inputs(work)
@@ -338,6 +344,14 @@ def real_rows(work: Path) -> list[Row]:
     out = [
         _real_row(f"{whole}, levelled map", real),
         _real_row(f"{whole}, G = 1 map", real, response=g1),
+        _real_row(
+            f"{whole}, levelled map, Φ at the filters' nominal wavelengths",
+            with_spectral_model(real, without_filter_record(real.models["spectral"])),
+        ),
+        _real_row(
+            f"{whole}, levelled map, Φ calibrated with the 400 nm filter",
+            with_spectral_model(real, calibrated_with_every_filter(real, work / "hdr")),
+        ),
     ]
     for side, (origin, shape) in REAL_CROPS.items():
         crop = crop_real(real, origin, shape)
@@ -367,6 +381,31 @@ def _real_row(name: str, real: Any, *, response: Any = None) -> Row:
         ("spectral_rmse", "mrae", "edge_rmse_R", "edge_rmse_B") if whole else ("spectral_rmse",)
     )
     return Row(name, "real", "broadband", inputs, score, measures)
+
+
+def with_spectral_model(real: Any, model: Any) -> Any:
+    """`real` (:class:`labkit.demo_real.RealInputs`) with another spectral dispersion model."""
+    return replace(real, models={**real.models, "spectral": model})
+
+
+def without_filter_record(model: Any) -> Any:
+    """`model` without its record of the filters' effective wavelengths
+    (``provenance.bands_table``): a response tabulated per filter then has Φ evaluated at
+    the filters' nominal wavelengths (:func:`reconstruction.options.filter_light`)."""
+    provenance = {k: v for k, v in model.provenance.items() if k != "bands_table"}
+    return replace(model, provenance=provenance)
+
+
+def calibrated_with_every_filter(real: Any, hdr: Path) -> Any:
+    """The spectral model of `real`'s filtered HDR images in `hdr`, calibrated as the demo
+    calibrates it but keeping every filter, however impure its light (``min_purity=0``:
+    the 400 nm filter, whose light leaks, too)."""
+    from calibration import load_filtered_hdr
+    from labkit.demo_real import calibrate_spectral
+    from labkit.rig import load_rig
+
+    images = load_filtered_hdr(hdr)[real.scene]
+    return calibrate_spectral(images, load_rig(real.rig), min_purity=0.0).model
 
 
 def crop_real(real: Any, origin: tuple[int, int], shape: tuple[int, int]) -> Any:

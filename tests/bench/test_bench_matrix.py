@@ -95,3 +95,32 @@ def test_every_measure_gets_a_table_of_the_rows_that_record_it() -> None:
     colour = matrix.error_table(results, "colour_rmse")
     assert [line[0] for line in colour.rows] == ["a"]
     assert matrix.reported_measures(results[2:]) == ["spectral_rmse", "ca_rg_px"]
+
+
+def test_the_real_model_variants_change_only_what_they_name(tmp_path: Path) -> None:
+    """The whole frame's two other dispersion models: without its record of the filters'
+    effective wavelengths, Φ of the sensor map's bands is at their nominal wavelengths
+    (the "700 nm" band at 700, not 682.6 nm), the rest of the model unchanged; calibrated
+    with every filter, the 400 nm filter (27 % in-band: it was left out) is used, at its
+    effective wavelength, and the calibrated range stays that of the pure filters."""
+    from labkit.demo_real import prepare_real_inputs
+    from reconstruction.options import filter_light
+
+    real = prepare_real_inputs(tmp_path)
+    model = real.models["spectral"]
+    centres = np.asarray(real.sensor["response"].wavelengths, dtype=float)
+    effective = filter_light(centres, model)
+    assert effective is not None and effective[-1] == pytest.approx(682.6, abs=0.5)
+    nominal = matrix.without_filter_record(model)
+    assert filter_light(centres, nominal) is None
+    assert nominal.fields is model.fields and nominal.region == model.region
+    assert "bands_table" in model.provenance  # the original keeps its record
+    used = {row["nominal_nm"]: row["used"] for row in model.provenance["bands_table"]}
+    assert used[400.0] is False and all(v for k, v in used.items() if k != 400.0)
+    every = matrix.calibrated_with_every_filter(real, tmp_path / "hdr")
+    table = every.provenance["bands_table"]
+    assert all(row["used"] for row in table)
+    assert filter_light(centres, every) == pytest.approx(effective)
+    assert every.region.wavelength_nm == pytest.approx(model.region.wavelength_nm)
+    row = matrix.with_spectral_model(real, every)
+    assert row.models["spectral"] is every and row.models["colour"] is real.models["colour"]
