@@ -450,14 +450,13 @@ def calibrate_spectral(
     """The demo's spectral calibration (``to_reference``, registration keypoints, reference
     :data:`REFERENCE_BAND`, the filters' bands measured on the `images`) of the filtered
     HDR `images` of one chart; `min_purity` as :func:`calibration.calibrate_dispersion`'s
-    (default its own: the 400 nm filter, whose light leaks, is left out; 0 keeps it);
+    (by default its own: the 400 nm filter, whose light leaks, is left out; 0 keeps it);
     `bands` are :func:`calibration.bands.filter_bands` of the rig and images (computed when
     not given); `rng` draws the cross-validation folds (default: seeded 2019).
     Returns the :class:`~calibration.dispersion_calibration.DispersionCalibration`."""
     from calibration.bands import filter_bands
-    from calibration.dispersion_calibration import calibrate_dispersion
+    from calibration.dispersion_calibration import MIN_PURITY, calibrate_dispersion
 
-    purity = {} if min_purity is None else {"min_purity": min_purity}
     return calibrate_dispersion(
         images,
         reference=REFERENCE_BAND,
@@ -466,7 +465,7 @@ def calibrate_spectral(
         bands=bands if bands is not None else filter_bands(rig, images=images),
         rng=rng if rng is not None else np.random.default_rng(2019),
         workers=2,
-        **purity,
+        min_purity=MIN_PURITY if min_purity is None else min_purity,
     )
 
 

@@ -390,8 +390,8 @@ class ImageFormation(LinearOperator):
         response): no two samples share a column, so nothing is added up and each raw
         pixel's row is its samples' stencils side by side, read straight from Φ's taps.
 
-        The row keeps the stencils' order (sample, row tap, column tap), not the columns'
-        (a product does not need sorted columns); a source that two taps of one stencil
+        The row is in the order (row tap, sample, column tap), not the columns' (a product
+        does not need sorted columns); a source that two taps of one stencil
         reach (a patch narrower than the stencil) stays two entries, which a product adds.
         """
         rows, cols = self.domain_shape[:2]

@@ -488,6 +488,10 @@ def scheduler_security() -> Any:
     return security
 
 
+SERIAL_SCHEDULERS = ("sync", "synchronous", "single-threaded")
+"""Dask's names for its scheduler that runs every task on the calling thread."""
+
+
 def _compute(
     result: da.Array,
     scheduler: str | object | None,
@@ -511,7 +515,7 @@ def _compute(
         with client:
             return client.compute(result).result()
     name = scheduler or "threads"
-    if name not in ("threads", "processes", "sync", "synchronous", "single-threaded"):
+    if name not in ("threads", "processes", *SERIAL_SCHEDULERS):
         raise DataError(
             f"unknown scheduler {scheduler!r}; use threads, processes, sync, tcp://host:port, "
             "tls://host:port or a dask.distributed.Client"
@@ -538,6 +542,7 @@ class _PatchProgress(dask.callbacks.Callback):
 
 __all__: Sequence[str] = (
     "PHI_STATES",
+    "SERIAL_SCHEDULERS",
     "PatchOptions",
     "SolverOptions",
     "chunk_sizes",

@@ -40,6 +40,7 @@ from reconstruction.choices import (
 from reconstruction.image_formation import LatentSpace, build_formation
 from reconstruction.options import ReconstructOptions
 from reconstruction.patches import (
+    SERIAL_SCHEDULERS,
     PatchOptions,
     SolverOptions,
     max_dispersion,
@@ -325,7 +326,7 @@ def prepare_problem(
 def weight_search_workers(scheduler: Any) -> int:
     """Threads the weight search may use: 2 (it solves two weights at a time at most)
     unless the patches run on one thread (a ``sync`` scheduler) or the machine has one core."""
-    if isinstance(scheduler, str) and scheduler in ("sync", "synchronous", "single-threaded"):
+    if isinstance(scheduler, str) and scheduler in SERIAL_SCHEDULERS:
         return 1
     return min(2, os.cpu_count() or 1)
 

@@ -185,9 +185,11 @@ class _Evaluator:
         """Solve the `candidates` not yet solved on up to `workers` threads at once (their
         scores then come from the cache, in the search's own order). Only for searches
         whose solves do not depend on their order (:attr:`own_starts`)."""
+        if workers < 2 or not self.own_starts:
+            return
         with self._lock:
             missing = [w for w in dict.fromkeys(candidates) if w not in self._cache]
-        if workers < 2 or len(missing) < 2 or not self.own_starts:
+        if len(missing) < 2:
             return
         with ThreadPoolExecutor(min(workers, len(missing))) as pool:
             list(pool.map(self.solutions, missing))
