@@ -20,7 +20,7 @@ evaluated at), what lies outside and what the policy does there; commands put it
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
@@ -246,6 +246,11 @@ class DomainUse:
         Largest difference between the fitted function and its clamped value over the
         image: at the wavelengths outside the range, and at the positions beyond the
         margin, px. How much the result depends on a choice the data cannot make.
+    validated : list of dict
+        For each end of the calibrated range that a requested wavelength lies beyond, the
+        model's own record of its error one band step beyond its data (``band_nm``,
+        ``from_nm``, ``step_nm``, ``rms_px``; :func:`calibration.fit_polynomial_model`),
+        when the model has one.
     """
 
     policy: str
@@ -257,6 +262,7 @@ class DomainUse:
     margin_px: float
     spectral_effect_px: float = 0.0
     spatial_effect_px: float = 0.0
+    validated: list[dict[str, Any]] = field(default_factory=list)
 
     @property
     def outside(self) -> bool:
@@ -281,7 +287,9 @@ class DomainUse:
             )
             parts.append(
                 f"wavelengths {listed} nm (calibrated {lo:.1f}–{hi:.1f} nm; the fitted "
-                f"function differs by up to {self.spectral_effect_px:.2f} px there)"
+                f"function differs by up to {self.spectral_effect_px:.2f} px there"
+                + _validated_text(self.validated)
+                + ")"
             )
         if self.area_outside > 0 and self.spatial_effect_px >= NEGLIGIBLE_PX:
             parts.append(
@@ -307,7 +315,19 @@ class DomainUse:
             "margin_px": float(self.margin_px),
             "spectral_effect_px": float(self.spectral_effect_px),
             "spatial_effect_px": float(self.spatial_effect_px),
+            "validated": [dict(v) for v in self.validated],
         }
+
+
+def _validated_text(records: Sequence[Mapping[str, Any]]) -> str:
+    steps = [
+        f"{r['from_nm']:.1f} → {r['band_nm']:.1f} nm {r['rms_px']:.2f} px RMS"
+        for r in records
+        if isinstance(r.get("rms_px"), (int, float))
+    ]
+    if not steps:
+        return ""
+    return "; calibration measured its error extrapolating one band step: " + ", ".join(steps)
 
 
 def domain_use(
@@ -385,6 +405,14 @@ def domain_use(
     if model.variables == "xylambda" and not in_range and region.wavelength_nm is not None:
         in_range = list(region.wavelength_nm)
     spatial = effect(gx[beyond], gy[beyond], in_range)
+    validated = []
+    if outside_nm:
+        lo, hi = region.wavelength_nm
+        records = model.selection.get("extrapolation") or []
+        ends = (min(outside_nm) < lo, max(outside_nm) > hi)
+        for record, beyond_end in zip(records, ends, strict=False):
+            if beyond_end and isinstance(record, Mapping):
+                validated.append(dict(record))
     use = DomainUse(
         policy,
         region.wavelength_nm,
@@ -395,6 +423,7 @@ def domain_use(
         region.margin_px,
         spectral,
         spatial,
+        validated,
     )
     if policy == "refuse" and use.outside:
         raise DataError(

@@ -16,15 +16,22 @@ Errors are **mean squared Euclidean prediction errors in px²**: the mean over t
 validation keypoints of (dx − d̂x)² + (dy − d̂y)².
 
 *Spectral* — thesis Algorithm 1. For each candidate (d_xy, d_λ) ∈ {0…max_degree_xy} ×
-{0…N_λ − 2}: for each validation band i = 2…N_λ − 1 (in wavelength order: never the
-shortest or the longest), the band's keypoints V_i plus one of 10 random tenths of the
-other keypoints form the validation set, the remaining nine tenths the training set;
-e_db and s_db are the sample mean and sample standard deviation of the 10 (N_λ − 2)
-errors. With e_min the smallest e_db and s the s_db there, d_λ is the smallest b with
-some e_db − e_min ≤ s, then d_xy the smallest d with e_db − e_min ≤ s at that b. (This
-"one-standard-error" rule uses the standard deviation of the fold errors, as the thesis'
-Algorithm 1 does, not the standard error of their mean: it is deliberately conservative.)
-The tenths are drawn independently for each validation band.
+{0…N_λ − 2}: for each validation band i, the band's keypoints V_i plus one of 10 random
+tenths of the other keypoints form the validation set, the remaining nine tenths the
+training set; e_db and s_db are the sample mean and sample standard deviation of the
+10 × (number of validation bands) errors. The thesis validates on the bands i = 2…N_λ − 1
+only (``validation="interior"``: every fold interpolates in λ); by default every band is
+validated (``"every-band"``), so the shortest and the longest bands' folds judge each
+candidate on extrapolating one band step beyond its data too, and a degree in λ whose
+tails swing is paid for in the selection. With e_min the smallest e_db and s the s_db
+there, d_λ is the smallest b with some e_db − e_min ≤ s, then d_xy the smallest d with
+e_db − e_min ≤ s at that b. (This "one-standard-error" rule uses the standard deviation of
+the fold errors, as the thesis' Algorithm 1 does, not the standard error of their mean: it
+is deliberately conservative.) The tenths are drawn independently for each validation
+band. The chosen model's error one band step beyond its data is then measured at both ends
+(refitted without the end band, predicting it) and recorded in
+``selection["extrapolation"]``: the figure a user weighs before evaluating the model
+outside its calibrated range (:mod:`calibration.model_domain`).
 
 *Colour channels* — per channel, 10-fold cross-validation over degrees 0…max_degree_xy
 (thesis: "tenfold cross-validation, as done for vignetting correction"), and the same
@@ -56,6 +63,12 @@ from labkit.errors import ConfigError, DataError
 
 #: Largest spatial degree the thesis considers.
 MAX_DEGREE_XY = 12
+
+#: Which bands a spectral model's degree selection holds out in turn.
+VALIDATIONS = {
+    "every-band": "every band, the shortest and longest too (extrapolation is judged)",
+    "interior": "the bands between the shortest and the longest (thesis Algorithm 1)",
+}
 #: Fewest keypoints a band or channel must have (a plane through them needs three).
 MIN_KEYPOINTS = 3
 
@@ -81,6 +94,7 @@ def fit_polynomial_model(
     folds: int = 10,
     rng: np.random.Generator | None = None,
     max_condition: float = pb.MAX_CONDITION,
+    validation: str = "every-band",
     progress: Progress | None = None,
 ) -> DispersionModel:
     """Fit a polynomial dispersion model, choosing its degrees by cross-validation.
@@ -105,6 +119,9 @@ def fit_polynomial_model(
     max_condition : float
         Candidates whose design matrix has a larger 2-norm condition number are skipped;
         the final model's must be below it.
+    validation : {"every-band", "interior"}
+        Spectral keypoints: which bands are held out in turn (:data:`VALIDATIONS`; the
+        thesis: ``"interior"``).
     progress : callable(done, total, message), optional
         Called after each cross-validation split.
 
@@ -141,6 +158,8 @@ def fit_polynomial_model(
         )
     if isinstance(folds, bool) or not isinstance(folds, int | np.integer) or folds < 2:
         raise ConfigError(f"folds must be an integer ≥ 2, got {folds!r}")
+    if validation not in VALIDATIONS:
+        raise ConfigError(f"validation must be one of {', '.join(VALIDATIONS)}, not {validation!r}")
     rng = np.random.default_rng(0) if rng is None else rng
     if direction == "to_reference":
         x, y, dx, dy = keypoints.swapped()
@@ -159,6 +178,7 @@ def fit_polynomial_model(
             folds=int(folds),
             rng=rng,
             max_condition=max_condition,
+            validation=validation,
             progress=progress,
         )  # fmt: skip
         fields = {SPECTRAL: fit.field}
@@ -231,9 +251,11 @@ def _fit_spectral(
     folds: int,
     rng: np.random.Generator,
     max_condition: float,
+    validation: str,
     progress: Progress | None,
 ) -> _Fit:
-    """Trivariate polynomial with degrees by thesis Algorithm 1."""
+    """Trivariate polynomial with degrees by thesis Algorithm 1 (validated on
+    `validation`'s bands)."""
     bands = np.unique(wavelength)
     n_bands = len(bands)
     if n_bands < 3:
@@ -269,10 +291,11 @@ def _fit_spectral(
     exps = pb.exponent_table(max_degree_xy, max_degree_lambda)
     X = pb.design_matrix(t, exps)
 
-    # Algorithm 1 splits: band i (2…N_λ − 1) plus one tenth of the rest
+    # Algorithm 1 splits: band i plus one tenth of the rest
     parts: list[np.ndarray] = []
     splits: list[list[int]] = []
-    for i in range(1, n_bands - 1):
+    validated = range(n_bands) if validation == "every-band" else range(1, n_bands - 1)
+    for i in validated:
         parts.append(np.flatnonzero(band_index == i))
         band_part = len(parts) - 1
         rest = np.flatnonzero(band_index != i)
@@ -308,6 +331,10 @@ def _fit_spectral(
         X[:, cols], target, max_condition=max_condition, what="spectral polynomial model"
     )
     field = PolynomialField(normaliser, domain, exps[cols], coef)
+    extrapolation = [
+        _extrapolation_error(X[:, cols], target, band_index, end, bands, normaliser)
+        for end in (0, n_bands - 1)
+    ]
     skipped = [
         {"degree_xy": i, "degree_lambda": g, "reason": reason}
         for (g, i), reason in sorted(cv.skipped.items(), key=lambda kv: (kv[0][1], kv[0][0]))
@@ -329,12 +356,42 @@ def _fit_spectral(
         "skipped": skipped,
         "n_keypoints": len(wavelength),
         "folds": folds,
-        "validation_bands": [float(b) for b in bands[1:-1]],
+        "validation": validation,
+        "validation_bands": [float(bands[i]) for i in validated],
+        "extrapolation": extrapolation,
         "max_degree_xy": max_degree_xy,
         "max_degree_lambda": int(max_degree_lambda),
         "exact_solves": cv.exact_solves,
     }
     return _Fit(field, report)
+
+
+def _extrapolation_error(
+    X: np.ndarray,
+    target: np.ndarray,
+    band_index: np.ndarray,
+    end: int,
+    bands: np.ndarray,
+    normaliser: Normaliser,
+) -> dict[str, float | None]:
+    """The chosen model's error one band step beyond its data: refitted without the end
+    band `end` (its columns `X`), RMS Euclidean error predicting that band, px (None when
+    the other bands cannot determine the model)."""
+    inner = end + 1 if end == 0 else end - 1
+    held = band_index == end
+    record: dict[str, float | None] = {
+        "band_nm": float(bands[end]),
+        "from_nm": float(bands[inner]),
+        "step_nm": float(abs(bands[end] - bands[inner])),
+        "rms_px": None,
+    }
+    try:
+        coef, _ = pb.solve_lstsq(X[~held], target[~held], what="extrapolation check")
+    except DataError:
+        return record
+    error = normaliser.displacement_scale**2 * np.sum((X[held] @ coef - target[held]) ** 2, 1)
+    record["rms_px"] = float(np.sqrt(np.mean(error)))
+    return record
 
 
 def _fit_channel(

@@ -214,6 +214,13 @@ def _show(args: argparse.Namespace) -> int:
         error = selection["cv_min"].get("error")
         if isinstance(error, (int, float)):
             print(f"               cross-validated error {error:.3g} px² at its minimum")
+    for record in selection.get("extrapolation") or []:
+        rms = record.get("rms_px") if isinstance(record, dict) else None
+        if isinstance(rms, (int, float)):
+            print(
+                f"               extrapolating one band step, {record['from_nm']:.1f} → "
+                f"{record['band_nm']:.1f} nm (refitted without it): {rms:.3f} px RMS"
+            )
     return 0
 
 
