@@ -28,6 +28,16 @@ eq. 4.9), its residual chromatic aberration (edge strips of the ColorChecker's p
 defaults' wall time is held to :data:`TARGET_S`) and its ADMM iterations. A row
 **passes** when the defaults are within :data:`TOLERANCE` of the best variant on every one
 of its error measures.
+
+Where a row measures residual chromatic aberration, every baseline a user would pick
+instead is measured the same way (:func:`baseline_table`): bilinear, Malvar and Menon
+demosaicing, each alone and followed by warping R and B onto G with a colour-channel
+model (Rudakova–Monasse; OpenCV's calibrated correction and the thesis' warping are of
+this kind). The real rows' colour model is the one ``labkit demo --real`` calibrates on
+the same raw image (moved to the crop for the quadrants); the simulated rows' is the
+model a calibration of their lens would find at best
+(:func:`labkit.bench.reconstruct_cases.channel_model`), since a calibration on their own
+small images finds too few keypoints.
 """
 
 from __future__ import annotations
@@ -94,6 +104,10 @@ class Row:
         measured).
     errors : tuple of str
         The measures the verdict compares: the spectral ones first, then residual CA.
+    baselines : callable, optional
+        () → {baseline: {measure: value}}: the row's residual-CA measures of every baseline
+        image (:func:`reconstruction.baseline_images`: each demosaicing method, and each
+        followed by warping with the row's colour-channel model).
     """
 
     name: str
@@ -102,6 +116,7 @@ class Row:
     inputs: dict[str, Any]
     score: Callable[[Any], dict[str, float | None]]
     errors: tuple[str, ...]
+    baselines: Callable[[], dict[str, dict[str, float | None]]] | None = None
 
 
 def bench_matrix(
@@ -143,7 +158,16 @@ def bench_matrix(
             for label, options in variants:
                 target = TARGET_S if label == variants[0][0] else None
                 results.append(_run(row, label, options, target))
+            if row.baselines is not None:
+                defaults = next(
+                    m
+                    for m in results
+                    if m.extra["row"] == row.name and m.extra["variant"] == variants[0][0]
+                )
+                defaults.extra["baselines"] = row.baselines()
     notes: list = [verdict_table(results, variants[0][0])]
+    if any("baselines" in m.extra for m in results):
+        notes.append(baseline_table(results))
     notes += [error_table(results, measure) for measure in reported_measures(results)]
     if out is not None and results:
         notes.append(_plot(results, variants[0][0], Path(out)))
@@ -251,6 +275,48 @@ def verdict_table(results: Sequence[Measurement], reference: str) -> Table:
         f"variants on each row: error of the defaults / the best variant's (≤ "
         f"{1 + TOLERANCE:g} passes)",
         ["row", "kind", "defaults / best", "passes", f"defaults: wall / CPU s (≤ {TARGET_S:g})"],
+        lines,
+    )
+
+
+#: The residual-CA measures a row may record, and how a table cell names them.
+CA_MEASURES = {"edge_rmse_R": "R", "edge_rmse_B": "B", "ca_rg_px": "R−G", "ca_bg_px": "B−G"}
+
+
+def baseline_table(results: Sequence[Measurement]) -> Table:
+    """Per row with baselines: the defaults' residual CA and every baseline's, and whether
+    the defaults are below every baseline on every measure."""
+    names = list(dict.fromkeys(b for m in results for b in m.extra.get("baselines", {})))
+    lines = []
+    for m in results:
+        baselines = m.extra.get("baselines")
+        if baselines is None:
+            continue
+        measures = [k for k in m.extra["error_measures"] if k in CA_MEASURES]
+
+        def cell(values: dict[str, Any], measures: list[str] = measures) -> str:
+            return " / ".join(
+                "—" if values.get(k) is None else f"{values[k]:.3f}" for k in measures
+            )
+
+        below = all(
+            m.extra.get(k) is not None
+            and all(b.get(k) is None or m.extra[k] < b[k] for b in baselines.values())
+            for k in measures
+        )
+        lines.append(
+            [
+                m.extra["row"],
+                " / ".join(CA_MEASURES[k] for k in measures),
+                cell(m.extra),
+                *(cell(baselines[n]) if n in baselines else "—" for n in names),
+                "yes" if below else "**no**",
+            ]
+        )
+    return Table(
+        "Residual chromatic aberration of the defaults and of every baseline (edge strips: "
+        "RMSE as a fraction of the raw mean; disks: R−G and B−G centre offsets, px)",
+        ["row", "measures", "labkit defaults", *names, "defaults below every baseline"],
         lines,
     )
 
@@ -375,12 +441,37 @@ def _real_row(name: str, real: Any, *, response: Any = None) -> Row:
                 "edge_rmse_R": s["edge_rmse_R"],
                 "edge_rmse_B": s["edge_rmse_B"],
             }
-        return {"spectral_rmse": real.pixel_errors(result)["chart"]}
+        return {
+            "spectral_rmse": real.pixel_errors(result)["chart"],
+            **_real_edges(real, {"x": result.raw_colour})["x"],
+        }
 
-    measures = (
-        ("spectral_rmse", "mrae", "edge_rmse_R", "edge_rmse_B") if whole else ("spectral_rmse",)
-    )
-    return Row(name, "real", "broadband", inputs, score, measures)
+    def baselines() -> dict[str, dict[str, float | None]]:
+        from reconstruction import baseline_images
+
+        raw = real.synthesis.raw
+        images, _ = baseline_images(
+            raw.raw, cfa=raw.cfa, colour_dispersion=real.models.get("colour")
+        )
+        return _real_edges(real, images)
+
+    measures = ("spectral_rmse", "mrae") if whole else ("spectral_rmse",)
+    measures += ("edge_rmse_R", "edge_rmse_B")
+    return Row(name, "real", "broadband", inputs, score, measures, baselines)
+
+
+def _real_edges(real: Any, images: dict[str, np.ndarray]) -> dict[str, dict[str, float | None]]:
+    """Edge-strip RMSE R and B (§4.4.3, fractions of the raw mean, as ``labkit evaluate``
+    reports them) of each raw colour image of `real`'s chart, by name."""
+    from reconstruction import evaluate
+
+    raw = real.synthesis.raw
+    methods = evaluate(raw.raw, images, cfa=raw.cfa, labels=real.labels).as_dict()["methods"]
+    out: dict[str, dict[str, float | None]] = {}
+    for name in images:
+        edge = methods[name]["residual_aberration"]["edge"]["rmse"]
+        out[name] = {f"edge_rmse_{c}": float(edge[c]) for c in "RB"}
+    return out
 
 
 def with_spectral_model(real: Any, model: Any) -> Any:
@@ -411,7 +502,7 @@ def calibrated_with_every_filter(real: Any, hdr: Path) -> Any:
 def crop_real(real: Any, origin: tuple[int, int], shape: tuple[int, int]) -> Any:
     """`real` (:class:`labkit.demo_real.RealInputs`) cut to the `shape` px window at
     `origin` (even, so that the Bayer phase is kept), with the whole sensor's dispersion
-    model moved to the window (:meth:`calibration.DispersionModel.cropped`), as a user who
+    models moved to the window (:meth:`calibration.DispersionModel.cropped`), as a user who
     calibrated the sensor once and reconstructs a crop would. (Calibrating on the crop's
     own frames is the other way; the registration keypoints of these frames find too
     little texture in a half of the chart.)"""
@@ -428,7 +519,9 @@ def crop_real(real: Any, origin: tuple[int, int], shape: tuple[int, int]) -> Any
         synthesis.rgb[window],
         replace(synthesis.raw, raw=synthesis.raw.raw[window]),
     )
-    models = {**real.models, "spectral": real.models["spectral"].cropped(origin, shape)}
+    models = {**real.models}
+    for name in ("spectral", "colour"):
+        models[name] = real.models[name].cropped(origin, shape)
     return replace(real, synthesis=cropped, models=models, labels=real.labels[window])
 
 
@@ -436,7 +529,7 @@ def simulated_rows(rig_path: Path, *, keep: Callable[[str], bool] = lambda _: Tr
     """The simulated rows: ColorChecker and texture under broadband and narrow-band light,
     a natural-like scene under broadband light,
     and a disk chart with strong off-axis aberration."""
-    from labkit.bench.reconstruct_cases import errors, simulated_case
+    from labkit.bench.reconstruct_cases import edge_errors, errors, simulated_case
 
     rows = []
     shape = SIM_SHAPE
@@ -482,12 +575,28 @@ def simulated_rows(rig_path: Path, *, keep: Callable[[str], bool] = lambda _: Tr
                 out.update(_disk_offsets(result.raw_colour))
             return out
 
+        def baselines(case: dict = case) -> dict[str, dict[str, float | None]]:
+            from reconstruction import baseline_images
+
+            images, _ = baseline_images(
+                case["raw"], cfa=case["cfa"], colour_dispersion=case["colour_model"]()
+            )
+            if case["scene"] == "disks":
+                return {name: dict(_disk_offsets(rgb)) for name, rgb in images.items()}
+            return {
+                name: {k: v for k, v in edge_errors(case, rgb).items() if k != "edge_rmse_G"}
+                for name, rgb in images.items()
+            }
+
         measures = ("spectral_rmse",)
         if scene == "colorchecker":
             measures += ("edge_rmse_R", "edge_rmse_B")
         if scene == "disks":
             measures += ("ca_rg_px", "ca_bg_px")
-        rows.append(Row(name, "simulated", kind, inputs, score, measures))
+        with_ca = scene == "disks" or "boxes" in case
+        rows.append(
+            Row(name, "simulated", kind, inputs, score, measures, baselines if with_ca else None)
+        )
     return rows
 
 

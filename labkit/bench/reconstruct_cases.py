@@ -122,6 +122,7 @@ def simulated_case(
         "truth": truth,
         "max_shift_px": float(rig.sim.lens.max_shift_px),
         "blur_px": float(rig.sim.lens.blur_sigma_px),
+        "colour_model": lambda: channel_model(world, illumination),
     }
     if scene == "colorchecker" and flat_fraction == 0:
         from labkit.sim.scenes import colorchecker_patch_boxes
@@ -131,6 +132,44 @@ def simulated_case(
         if np.min(boxes[:, 2:] - boxes[:, :2]) > 2 * STRIP_PX + 2:  # patches have centres
             case["boxes"] = boxes
     return case
+
+
+#: Pitch of the exact keypoints :func:`channel_model` fits, px.
+CHANNEL_KEYPOINT_PITCH_PX = 8
+
+
+def channel_model(world: Any, illumination: str) -> Any:
+    """The colour-channel dispersion model (R and B relative to G, ``from_reference``) a
+    calibration of the simulated lens would find at best: each channel's displacement is
+    the lens' averaged over the light that channel records from a grey scene (camera
+    sensitivity × `illumination`'s light), computed exactly on a grid of
+    :data:`CHANNEL_KEYPOINT_PITCH_PX` and fitted as a calibration fits one (degree by
+    cross-validation). The warping baselines get it: a colour-channel calibration on the
+    small simulated rows' own images finds too few keypoints."""
+    from calibration.keypoints import DispersionKeypoints
+    from calibration.polynomial import fit_polynomial_model
+    from labkit.spectra.container import trapezoid_weights
+
+    lens, wavelengths = world.lens, world.wavelengths
+    rows, cols = lens.shape
+    pitch = CHANNEL_KEYPOINT_PITCH_PX
+    gy, gx = np.mgrid[pitch / 2 : rows : pitch, pitch / 2 : cols : pitch]
+    x, y = gx.ravel(), gy.ravel()
+    sensitivity = world.response.select(["R", "G", "B"]).resample(wavelengths).values
+    light = world.light(illumination) * trapezoid_weights(wavelengths)
+    weights = sensitivity * light[:, None]
+    weights /= weights.sum(axis=0)
+    dx, dy = lens.displacement(x[:, None], y[:, None], wavelengths[None, :])
+    mean = {c: (dx @ weights[:, i], dy @ weights[:, i]) for i, c in enumerate("RGB")}
+    parts = [
+        (x, y, mean[c][0] - mean["G"][0], mean[c][1] - mean["G"][1], np.full(x.shape, c))
+        for c in "RB"
+    ]
+    px, py, pdx, pdy, channel = (np.concatenate(v) for v in zip(*parts, strict=True))
+    keypoints = DispersionKeypoints(
+        px, py, pdx, pdy, reference="G", image_shape=(rows, cols), channel=channel
+    )
+    return fit_polynomial_model(keypoints, rng=np.random.default_rng(0))
 
 
 def edge_errors(case: dict[str, Any], raw_colour: np.ndarray) -> dict[str, float]:
