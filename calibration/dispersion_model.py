@@ -281,6 +281,27 @@ class DispersionModel:
             out[start : start + CHUNK_POINTS] = fld.evaluate(points[start : start + CHUNK_POINTS])
         return out[:, 0].reshape(shape), out[:, 1].reshape(shape)
 
+    def displacement_grid(
+        self, x: np.ndarray, y: np.ndarray, wavelengths_nm: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`displacement` of a spectral model at every position (`x`, `y`) (the same
+        shape, px) for every wavelength of the 1-D `wavelengths_nm` (nm): (dx, dy), each
+        of shape ``x.shape + (len(wavelengths_nm),)``. The same values, evaluated once per
+        position and once per wavelength where the field allows it (a polynomial)."""
+        x, y = np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(y, np.float64))
+        waves = np.asarray(wavelengths_nm, np.float64).ravel()
+        fld = self.fields.get(SPECTRAL)
+        if self.variables != "xylambda" or not hasattr(fld, "evaluate_grid"):
+            return self.displacement(x[..., None], y[..., None], waves)
+        if not all(np.all(np.isfinite(v)) for v in (x, y, waves)):
+            raise DataError("dispersion model inputs hold NaN or Inf")
+        if self.extrapolation == "clamp":
+            x, y, clamped = self.region.clamp(x, y, waves)
+            waves = waves if clamped is None else clamped
+        out = fld.evaluate_grid(np.column_stack([x.ravel(), y.ravel()]), waves)
+        shape = (*x.shape, len(waves))
+        return out[..., 0].reshape(shape), out[..., 1].reshape(shape)
+
     # -- files ----------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
         """The YAML document (plain types only)."""

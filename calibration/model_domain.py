@@ -123,7 +123,10 @@ class CalibratedRegion:
         """Inputs moved into the domain (see the module notes); same shapes, float64."""
         x, y = np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(y, np.float64))
         x, y = x.copy(), y.copy()
-        outside = ~self.contains(x, y)
+        if x.size > 4 and self._box_inside(x, y):
+            outside = np.zeros(x.shape, dtype=bool)  # the hull is convex: nothing to move
+        else:
+            outside = ~self.contains(x, y)
         if outside.any() and len(self.hull_xy) >= 1:
             points = np.column_stack([x[outside], y[outside]])
             nearest = self._nearest_on_hull(points)
@@ -136,6 +139,13 @@ class CalibratedRegion:
         if wavelength_nm is not None and self.wavelength_nm is not None:
             wavelength_nm = np.clip(np.asarray(wavelength_nm, np.float64), *self.wavelength_nm)
         return x, y, wavelength_nm
+
+    def _box_inside(self, x: np.ndarray, y: np.ndarray) -> bool:
+        """Whether the bounding box of the positions lies inside the (convex) hull."""
+        if len(self.hull_xy) < 3:
+            return False
+        (x0, x1), (y0, y1) = (float(x.min()), float(x.max())), (float(y.min()), float(y.max()))
+        return bool(np.all(self.contains(np.array([x0, x1, x0, x1]), np.array([y0, y0, y1, y1]))))
 
     def _nearest_on_hull(self, points: np.ndarray) -> np.ndarray:
         """The hull's nearest point to each of `points` (n, 2), px."""

@@ -167,31 +167,28 @@ class Dispersion(LinearOperator):
         sampling = _SAMPLING[interpolation]
 
         yy, xx = np.mgrid[0:rows, 0:cols].astype(np.float64)
-        row_taps, col_taps = [], []
-        max_shift = 0.0
-        means = []
         if self.wavelengths_nm is not None:  # every band in one evaluation
-            all_x, all_y = model.displacement(
-                (xx + col0)[..., None], (yy + row0)[..., None], self.wavelengths_nm
-            )
-            fields = [(all_x[..., j], all_y[..., j]) for j in range(len(bands))]
+            all_x, all_y = model.displacement_grid(xx + col0, yy + row0, self.wavelengths_nm)
+            ex, ey = np.moveaxis(all_x, -1, 0), np.moveaxis(all_y, -1, 0)  # (J, rows, cols)
         else:
             fields = [model.displacement(xx + col0, yy + row0, **band) for band in bands]
-        for band, (ex, ey) in zip(bands, fields, strict=True):
-            if not (np.all(np.isfinite(ex)) and np.all(np.isfinite(ey))):
-                raise DataError(f"the dispersion model gives NaN or Inf displacements at {band}")
-            max_shift = max(max_shift, float(np.sqrt(np.max(ex * ex + ey * ey))))
-            means.append((float(np.mean(ex)), float(np.mean(ey))))
-            row_taps.append(sampling((yy + ey).ravel(), rows, boundary))
-            col_taps.append(sampling((xx + ex).ravel(), cols, boundary))
-        offsets_y, weights_y = (np.stack(v) for v in zip(*row_taps, strict=True))
-        offsets_x, weights_x = (np.stack(v) for v in zip(*col_taps, strict=True))
+            ex, ey = (np.stack(v) for v in zip(*fields, strict=True))
+        finite = np.isfinite(ex).all(axis=(1, 2)) & np.isfinite(ey).all(axis=(1, 2))
+        if not finite.all():
+            band = bands[int(np.flatnonzero(~finite)[0])]
+            raise DataError(f"the dispersion model gives NaN or Inf displacements at {band}")
+        samples = len(bands)
+        max_shift = float(np.sqrt(np.max(ex * ex + ey * ey)))
+        means = np.column_stack([ex.mean(axis=(1, 2)), ey.mean(axis=(1, 2))])
+        # every band's taps at once, (J, taps, rows·cols)
+        offsets_y, weights_y = sampling((yy + ey).reshape(samples, -1), rows, boundary)
+        offsets_x, weights_x = sampling((xx + ex).reshape(samples, -1), cols, boundary)
         # the taps' sources relative to their output pixel's row and column
         offsets_y -= yy.ravel().astype(np.int64)
         offsets_x -= xx.ravel().astype(np.int64)
         self.taps = AxisTaps(offsets_y, weights_y, offsets_x, weights_x, boundary)
         self.max_shift_px = max_shift
-        self.mean_displacement_px = np.array(means, dtype=np.float64).reshape(-1, 2)
+        self.mean_displacement_px = means.astype(np.float64).reshape(-1, 2)
 
     @functools.cached_property
     def stencils(self) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -301,7 +298,8 @@ class AxisTaps(NamedTuple):
 def _bilinear_taps(
     position: np.ndarray, size: int, boundary: str = "clamp"
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Source pixels and weights (2, n) sampling an axis of `size` px linearly at `position`.
+    """Source pixels and weights (…, 2, n) sampling an axis of `size` px linearly at
+    `position` (…, n).
 
     With ``boundary="clamp"`` positions outside [0, size − 1] are moved to the nearest end
     (and both taps stay inside the axis); with ``"periodic"`` the sources are not wrapped
@@ -315,7 +313,7 @@ def _bilinear_taps(
         first = np.floor(position).astype(np.int64)
         second = first + 1
     fraction = position - first  # in [0, 1]; 0 when size == 1
-    return np.stack([first, second]), np.stack([1 - fraction, fraction])
+    return np.stack([first, second], axis=-2), np.stack([1 - fraction, fraction], axis=-2)
 
 
 def keys_kernel(t: np.ndarray, a: float = -0.5) -> np.ndarray:
@@ -335,20 +333,24 @@ def _keys_far(t: np.ndarray, a: float) -> np.ndarray:
 
 
 def _keys_taps(fraction: np.ndarray, a: float = -0.5) -> np.ndarray:
-    """:func:`keys_kernel` at offsets ``fraction - (-1, 0, 1, 2)`` (4, n) for fractions in
-    [0, 1): the outer taps on the kernel's far piece, the inner on its near piece, the same
-    values without evaluating both pieces at every tap."""
-    f = fraction.ravel()
+    """:func:`keys_kernel` at offsets ``fraction - (-1, 0, 1, 2)`` (…, 4, n) for fractions
+    (…, n) in [0, 1) (a 0-d or 1-d `fraction` gives (4, n)): the outer taps on the kernel's
+    far piece, the inner on its near piece, the same values without evaluating both pieces
+    at every tap."""
+    f = np.asarray(fraction)
+    if f.ndim < 2:
+        f = f.ravel()
     return np.stack(
-        [_keys_far(1.0 + f, a), _keys_near(f, a), _keys_near(1.0 - f, a), _keys_far(2.0 - f, a)]
+        [_keys_far(1.0 + f, a), _keys_near(f, a), _keys_near(1.0 - f, a), _keys_far(2.0 - f, a)],
+        axis=-2,
     )
 
 
 def _cubic_taps(
     position: np.ndarray, size: int, boundary: str = "clamp"
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Source pixels and weights (4, n) sampling an axis of `size` px at `position` by
-    Keys' cubic convolution.
+    """Source pixels and weights (…, 4, n) sampling an axis of `size` px at `position`
+    (…, n) by Keys' cubic convolution.
 
     With ``boundary="clamp"`` positions are first moved into the axis and sources beyond
     it repeat its end pixel; with ``"periodic"`` the sources are not wrapped here
@@ -357,7 +359,7 @@ def _cubic_taps(
     if boundary == "clamp":
         position = np.clip(position, 0.0, size - 1.0)
     first = np.floor(position).astype(np.int64)
-    sources = first + np.arange(-1, 3)[:, None]
+    sources = first[..., None, :] + np.arange(-1, 3)[:, None]
     if boundary == "clamp":
         sources = np.clip(sources, 0, size - 1)
     return sources, _keys_taps(position - first)

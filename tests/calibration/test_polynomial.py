@@ -562,3 +562,18 @@ def test_fit_is_bit_identical_under_one_and_two_blas_threads() -> None:
     for file in files:
         del file["selection"]["seconds"]  # wall time
     assert files[0] == files[1]
+
+
+@pytest.mark.parametrize("policy", ["allow", "clamp"])
+def test_grid_evaluation_is_pointwise_evaluation(clean, policy) -> None:
+    """Positions × wavelengths evaluated factor by factor (the operator Φ's path) give the
+    point-by-point values, inside and beyond the calibrated domain."""
+    _, model = clean
+    model = model.within_domain(policy)
+    yy, xx = np.mgrid[-40:2100:97, -60:2500:83].astype(float)
+    waves = np.array([380.0, 400.0, 455.5, 600.0, 700.0, 730.0])
+    dx, dy = model.displacement_grid(xx, yy, waves)
+    ex, ey = model.displacement(xx[..., None], yy[..., None], waves)
+    assert dx.shape == (*xx.shape, len(waves)) and np.abs(dx).max() > 1.0
+    np.testing.assert_allclose(dx, ex, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(dy, ey, rtol=0, atol=1e-12)
