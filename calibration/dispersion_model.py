@@ -265,14 +265,7 @@ class DispersionModel:
                 )
             given = (x, y)
             fld = self.fields[channel]
-        given = tuple(np.asarray(v, np.float64) for v in given)
-        if not all(np.all(np.isfinite(v)) for v in given):
-            raise DataError("dispersion model inputs hold NaN or Inf")
-        if self.extrapolation == "clamp":
-            # before broadcasting: positions given once for many wavelengths are moved
-            # once (the hull's nearest point costs far more than the polynomial)
-            x_in, y_in, wave_in = self.region.clamp(*given[:2], *given[2:])
-            given = (x_in, y_in) if wave_in is None else (x_in, y_in, wave_in)
+        given = self._domain_inputs(*given)
         arrays = np.broadcast_arrays(*given)
         shape = arrays[0].shape
         points = np.column_stack([a.ravel() for a in arrays])
@@ -293,14 +286,23 @@ class DispersionModel:
         fld = self.fields.get(SPECTRAL)
         if self.variables != "xylambda" or not hasattr(fld, "evaluate_grid"):
             return self.displacement(x[..., None], y[..., None], waves)
-        if not all(np.all(np.isfinite(v)) for v in (x, y, waves)):
-            raise DataError("dispersion model inputs hold NaN or Inf")
-        if self.extrapolation == "clamp":
-            x, y, clamped = self.region.clamp(x, y, waves)
-            waves = waves if clamped is None else clamped
+        x, y, waves = self._domain_inputs(x, y, waves)
         out = fld.evaluate_grid(np.column_stack([x.ravel(), y.ravel()]), waves)
         shape = (*x.shape, len(waves))
         return out[..., 0].reshape(shape), out[..., 1].reshape(shape)
+
+    def _domain_inputs(self, *given: Any) -> tuple[np.ndarray, ...]:
+        """(x, y[, wavelength]) as float64 arrays, checked finite and, for a clamped model,
+        moved into its domain before any broadcasting: positions given once for many
+        wavelengths are moved once (the hull's nearest point costs far more than the
+        polynomial)."""
+        arrays = tuple(np.asarray(v, np.float64) for v in given)
+        if not all(np.all(np.isfinite(v)) for v in arrays):
+            raise DataError("dispersion model inputs hold NaN or Inf")
+        if self.extrapolation != "clamp":
+            return arrays
+        x, y, wave = self.region.clamp(*arrays)
+        return (x, y) if wave is None else (x, y, wave)
 
     # -- files ----------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:

@@ -251,6 +251,19 @@ class RealInputs:
             "surround": split.surround,
         }
 
+    def edge_rmse(self, images: dict[str, np.ndarray]) -> dict[str, dict[str, float]]:
+        """Edge-strip RMSE per channel (§4.4.3, fractions of the raw mean, as ``labkit
+        evaluate`` reports them) of each raw colour image of the chart, by name:
+        {name: {"R": …, "G": …, "B": …}}."""
+        from reconstruction import evaluate
+
+        raw = self.synthesis.raw
+        methods = evaluate(raw.raw, images, cfa=raw.cfa, labels=self.labels).as_dict()["methods"]
+        return {
+            name: {c: float(methods[name]["residual_aberration"]["edge"]["rmse"][c]) for c in "RGB"}
+            for name in images
+        }
+
     def score(self, result: Any) -> dict[str, float]:
         """A reconstruction's patch-centre MRAE and RMSE against the chart's ASD reflectances
         (:func:`patch_spectral_errors`), edge-strip RMSE R/G/B of its raw colour image
@@ -259,7 +272,6 @@ class RealInputs:
         ``spectral_rmse_strips``, ``…_centres``, ``…_surround``).
         """
         from labkit.spectra import colorchecker_reflectances
-        from reconstruction import evaluate
 
         patch = patch_spectral_errors(
             result.spectral,
@@ -267,14 +279,12 @@ class RealInputs:
             self.centres,
             colorchecker_reflectances("measured"),
         )
-        raw = self.synthesis.raw
-        evaluation = evaluate(raw.raw, {"x": result.raw_colour}, cfa=raw.cfa, labels=self.labels)
-        edge = evaluation.as_dict()["methods"]["x"]["residual_aberration"]["edge"]["rmse"]
+        edge = self.edge_rmse({"x": result.raw_colour})["x"]
         pixels = self.pixel_errors(result)
         return {
             "mrae": patch["mrae"],
             "rmse": patch["rmse"],
-            **{f"edge_rmse_{c}": float(edge[c]) for c in "RGB"},
+            **{f"edge_rmse_{c}": edge[c] for c in "RGB"},
             "spectral_rmse": pixels["chart"],
             **{f"spectral_rmse_{k}": pixels[k] for k in ("strips", "centres", "surround")},
         }

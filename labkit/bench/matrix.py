@@ -155,16 +155,13 @@ def bench_matrix(
     results: list[Measurement] = []
     with tempfile.TemporaryDirectory(prefix="labkit-bench-matrix-") as work:
         for row in _rows(Path(rig_path), Path(work), rows):
-            for label, options in variants:
-                target = TARGET_S if label == variants[0][0] else None
-                results.append(_run(row, label, options, target))
-            if row.baselines is not None:
-                defaults = next(
-                    m
-                    for m in results
-                    if m.extra["row"] == row.name and m.extra["variant"] == variants[0][0]
-                )
-                defaults.extra["baselines"] = row.baselines()
+            row_results = [
+                _run(row, label, options, TARGET_S if label == variants[0][0] else None)
+                for label, options in variants
+            ]
+            if row.baselines is not None:  # beside the defaults' (the first variant's)
+                row_results[0].extra["baselines"] = row.baselines()
+            results += row_results
     notes: list = [verdict_table(results, variants[0][0])]
     if any("baselines" in m.extra for m in results):
         notes.append(baseline_table(results))
@@ -461,17 +458,12 @@ def _real_row(name: str, real: Any, *, response: Any = None) -> Row:
 
 
 def _real_edges(real: Any, images: dict[str, np.ndarray]) -> dict[str, dict[str, float | None]]:
-    """Edge-strip RMSE R and B (§4.4.3, fractions of the raw mean, as ``labkit evaluate``
-    reports them) of each raw colour image of `real`'s chart, by name."""
-    from reconstruction import evaluate
-
-    raw = real.synthesis.raw
-    methods = evaluate(raw.raw, images, cfa=raw.cfa, labels=real.labels).as_dict()["methods"]
-    out: dict[str, dict[str, float | None]] = {}
-    for name in images:
-        edge = methods[name]["residual_aberration"]["edge"]["rmse"]
-        out[name] = {f"edge_rmse_{c}": float(edge[c]) for c in "RB"}
-    return out
+    """Edge-strip RMSE R and B of each raw colour image of `real`'s chart, by name
+    (:meth:`labkit.demo_real.RealInputs.edge_rmse`)."""
+    return {
+        name: {f"edge_rmse_{c}": edge[c] for c in "RB"}
+        for name, edge in real.edge_rmse(images).items()
+    }
 
 
 def with_spectral_model(real: Any, model: Any) -> Any:

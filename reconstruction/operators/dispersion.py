@@ -188,7 +188,7 @@ class Dispersion(LinearOperator):
         offsets_x -= xx.ravel().astype(np.int64)
         self.taps = AxisTaps(offsets_y, weights_y, offsets_x, weights_x, boundary)
         self.max_shift_px = max_shift
-        self.mean_displacement_px = means.astype(np.float64).reshape(-1, 2)
+        self.mean_displacement_px = means
 
     @functools.cached_property
     def stencils(self) -> list[tuple[np.ndarray, np.ndarray]]:
