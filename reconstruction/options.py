@@ -219,7 +219,9 @@ class ReconstructOptions:
     weight_patch_px : int
         Size of those patches, px (even).
     scheduler : str or distributed.Client, optional
-        Dask scheduler (see :func:`~reconstruction.patches.reconstruct_patches`).
+        Dask scheduler of the patches (see
+        :func:`~reconstruction.patches.reconstruct_patches`); default
+        :func:`~reconstruction.patches.default_scheduler`.
 
     Raises
     ------

@@ -2,11 +2,12 @@
 
 The (normalised) raw image is padded by ``pad_px`` on every side by reflection without
 edge repetition, which keeps each pixel's Bayer colour, and split into chunks of about
-``patch_px``. ``dask.array.map_overlap`` hands each chunk to :func:`solve_patch` with
-``pad_px`` of its neighbours around it (the pre-padding supplies it at the image border);
-the patch is solved with periodic priors and only its chunk is kept (the overlap is
-discarded, not blended). The graph runs on Dask's local threaded scheduler by default,
-or on any ``dask.distributed`` cluster.
+``patch_px``. Each chunk, with ``pad_px`` of its neighbours around it (the pre-padding
+supplies them at the image border), is one Dask task of :func:`solve_patch`; the patch is
+solved with periodic priors and only its chunk is kept (the overlap is discarded, not
+blended). The tasks run on local threads by default, on a persistent pool of local
+processes (:mod:`~reconstruction.worker_pool`: threads spend much of a patch waiting for
+the interpreter lock), on the calling thread, or on any ``dask.distributed`` cluster.
 
 What a patch may skip
 ---------------------
@@ -28,31 +29,31 @@ translations and the priors made quadratic — instead of the thesis' zeros: far
 ADMM iterations, and the first CG solve, the longest, no longer starts from nothing
 (figures in the README, how it works).
 
-Per-patch diagnostics (solver report, what was skipped, time) travel in an extra plane of
-the output blocks, so they survive any scheduler, and are returned as records.
+Each task returns its patch's diagnostics (solver report, what was skipped, time) with
+its image; they are returned as records.
 """
 
 from __future__ import annotations
 
 import contextlib
-import functools
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from typing import Any
 
 import dask
-import dask.array as da
 import dask.callbacks
 import numpy as np
 
 from calibration.dispersion_model import DispersionModel
 from labkit.blas_threads import fixed_blas_threads
-from labkit.errors import ConfigError, DataError
+from labkit.errors import ConfigError, DataError, LabkitError
 from reconstruction.image_formation import DISCRETE, LatentSpace, build_formation
 from reconstruction.prior_terms import PriorTerm
 from reconstruction.problem import Problem
 from reconstruction.solvers.admm import solve
+from reconstruction.worker_pool import worker_pool
 
 #: Meaning of the ``phi`` field of a patch record.
 PHI_STATES = {0: "no model", 1: "used", 2: "skipped: negligible", 3: "skipped: flat patch"}
@@ -288,27 +289,14 @@ def solve_patch(
     return solution.latent, record
 
 
-def _block(
-    block: np.ndarray,
-    *,
-    block_id: tuple[int, ...] | None = None,
-    core_starts: tuple[np.ndarray, np.ndarray],
-    solve_kwargs: dict,
-) -> np.ndarray:
-    i, j = block_id[:2]
-    pad = solve_kwargs["options"].pad_px
-    counts = (len(core_starts[0]), len(core_starts[1]))
-    # the overlap Dask added (none on the outer sides, where the pre-padding stands instead)
-    top, left = (pad if i > 0 else 0), (pad if j > 0 else 0)
-    bottom = pad if i < counts[0] - 1 else 0
-    right = pad if j < counts[1] - 1 else 0
-    # every extended block reaches pad_px beyond its chunk's image pixels
-    origin = (int(core_starts[0][i]) - pad, int(core_starts[1][j]) - pad)
+def _solve_block(
+    block: np.ndarray, core: tuple[int, int, int, int], origin: tuple[int, int], solve_kwargs: dict
+) -> tuple[np.ndarray, dict]:
+    """One patch task: solve the padded `block` and keep its core rows and columns
+    (``core`` = top, bottom, left, right offsets in the block)."""
     latent, record = solve_patch(block, origin=origin, **solve_kwargs)
-    core = latent[top : block.shape[0] - bottom, left : block.shape[1] - right]
-    info = np.zeros(core.shape[:2])
-    info.ravel()[: len(_FIELDS)] = [record[k] for k in _FIELDS]
-    return np.concatenate([core, info[..., None]], axis=2)
+    top, bottom, left, right = core
+    return latent[top:bottom, left:right], record
 
 
 @fixed_blas_threads
@@ -333,8 +321,10 @@ def reconstruct_patches(
     cfa, latent, colour_gain, model, solver, options
         As for :func:`solve_patch`.
     scheduler : str or distributed.Client, optional
-        ``None``/``"threads"`` (local threads), ``"processes"``, ``"sync"``, a
-        ``tcp://host:port`` address, or a ``dask.distributed.Client``.
+        ``"processes"`` (a persistent pool of local processes,
+        :mod:`~reconstruction.worker_pool`), ``"threads"``, ``"sync"``, a
+        ``tcp://host:port`` address, or a ``dask.distributed.Client``; default
+        :func:`default_scheduler`.
     progress : callable, optional
         ``progress(done, total)`` after each patch (local schedulers only).
 
@@ -357,48 +347,40 @@ def reconstruct_patches(
     padded = np.pad(raw, pad, mode="reflect")
     cores = (chunk_sizes(rows, options.patch_px), chunk_sizes(cols, options.patch_px))
     core_starts = tuple(np.cumsum([0, *sizes[:-1]]) for sizes in cores)
-    # the first and last chunk of each axis also hold the pre-padding
-    chunks = tuple(
-        (s[0] + pad, *s[1:-1], s[-1] + pad) if len(s) > 1 else (s[0] + 2 * pad,) for s in cores
-    )
-    array = da.from_array(padded, chunks=chunks)
-    n = latent.channels
     solve_kwargs = dict(
         cfa=cfa, latent=latent, colour_gain=colour_gain, model=model, solver=solver, options=options
     )
-    block = functools.partial(_block, core_starts=core_starts, solve_kwargs=solve_kwargs)
-    result = da.map_overlap(
-        block,
-        array,
-        depth={0: pad, 1: pad},
-        boundary="none",
-        trim=False,
-        new_axis=[2],
-        chunks=(array.chunks[0], array.chunks[1], (n + 1,)),
-        dtype=np.float64,
-        name="labkit-reconstruct-patch",
-    )
-    full = _compute(result, scheduler, progress, len(cores[0]) * len(cores[1]))
-    records = []
+    # each patch is its chunk with pad_px of the (reflection-padded) image around it: one
+    # task with its own block, no tasks that cut and join neighbours' overlaps
+    tasks, places = [], []
     for i, (r0, core_rows) in enumerate(zip(core_starts[0], cores[0], strict=True)):
         for j, (c0, core_cols) in enumerate(zip(core_starts[1], cores[1], strict=True)):
-            # each block wrote its record at its first output pixel (in the padded frame)
-            first_row = 0 if i == 0 else int(r0) + pad
-            first_col = 0 if j == 0 else int(c0) + pad
-            values = full[
-                first_row : first_row + core_rows, first_col : first_col + core_cols, n
-            ].ravel()[: len(_FIELDS)]
-            record = dict(zip(_FIELDS, (float(v) for v in values), strict=True))
-            record["phi"] = PHI_STATES[int(record["phi"])]
-            record["converged"] = bool(record["converged"])
-            record["flat"] = bool(record["flat"])
-            record["exact"] = bool(record["exact"])
-            for key in ("iterations", "cg_max", "samples", "active", "polish_rounds"):
-                record[key] = int(record[key])
-            records.append(
-                {"row": int(r0), "col": int(c0), "rows": core_rows, "cols": core_cols, **record}
+            r0, c0 = int(r0), int(c0)
+            block = padded[r0 : r0 + core_rows + 2 * pad, c0 : c0 + core_cols + 2 * pad]
+            core = (pad, pad + core_rows, pad, pad + core_cols)
+            tasks.append(
+                dask.delayed(_solve_block, pure=False)(
+                    block,
+                    core,
+                    (r0 - pad, c0 - pad),
+                    solve_kwargs,
+                    dask_key_name=f"{PATCH_TASK}-{i}-{j}",
+                )
             )
-    return full[pad : pad + rows, pad : pad + cols, :n], records
+            places.append((r0, c0, core_rows, core_cols))
+    results = _compute(tasks, scheduler, progress)
+    full = np.empty((rows, cols, latent.channels))
+    records = []
+    for (r0, c0, core_rows, core_cols), (core, record) in zip(places, results, strict=True):
+        full[r0 : r0 + core_rows, c0 : c0 + core_cols] = core
+        record = dict(record)
+        record["phi"] = PHI_STATES[int(record["phi"])]
+        for key in ("converged", "flat", "exact"):
+            record[key] = bool(record[key])
+        for key in ("iterations", "cg_max", "samples", "active", "polish_rounds"):
+            record[key] = int(record[key])
+        records.append({"row": r0, "col": c0, "rows": core_rows, "cols": core_cols, **record})
+    return full, records
 
 
 def probe_scheduler(address: str, *, timeout_s: float | None = None) -> None:
@@ -491,15 +473,28 @@ def scheduler_security() -> Any:
 SERIAL_SCHEDULERS = ("sync", "synchronous", "single-threaded")
 """Dask's names for its scheduler that runs every task on the calling thread."""
 
+LOCAL_SCHEDULERS = ("processes", "threads", *SERIAL_SCHEDULERS)
+"""The local schedulers by name."""
+
+PATCH_TASK = "labkit-reconstruct-patch"
+"""How the key of every patch task starts."""
+
+
+def default_scheduler() -> str:
+    """``"threads"``: the pool of processes is faster on two cores or more (docs, speed), but
+    its workers import the caller's main module, as every ``spawn``-type pool does, which
+    runs a script without an ``if __name__ == "__main__"`` guard again; it is chosen by
+    name."""
+    return "threads"
+
 
 def _compute(
-    result: da.Array,
+    tasks: list[Any],
     scheduler: str | object | None,
     progress: Callable[[int, int], None] | None,
-    total: int,
-) -> np.ndarray:
+) -> list[Any]:
     if scheduler is not None and not isinstance(scheduler, str):
-        return scheduler.compute(result).result()  # a distributed.Client
+        return scheduler.gather(scheduler.compute(tasks))  # a distributed.Client
     if isinstance(scheduler, str) and scheduler.startswith(REMOTE_SCHEMES):
         from distributed import Client
 
@@ -513,17 +508,29 @@ def _compute(
                 f"({error}); check that a `dask scheduler` listens there"
             ) from None
         with client:
-            return client.compute(result).result()
-    name = scheduler or "threads"
-    if name not in ("threads", "processes", *SERIAL_SCHEDULERS):
+            return client.gather(client.compute(tasks))
+    name = scheduler or default_scheduler()
+    if name not in LOCAL_SCHEDULERS:
         raise DataError(
-            f"unknown scheduler {scheduler!r}; use threads, processes, sync, tcp://host:port, "
+            f"unknown scheduler {scheduler!r}; use processes, threads, sync, tcp://host:port, "
             "tls://host:port or a dask.distributed.Client"
         )
-    with dask.config.set(scheduler=name), contextlib.ExitStack() as stack:
+    settings: dict[str, Any] = {"scheduler": name}
+    if name == "processes":
+        # one patch per message: patches take 0.05–0.5 s each, Dask's default of 6 leaves
+        # one worker idle while the other finishes the last batch
+        settings.update(pool=worker_pool(), chunksize=1)
+    with dask.config.set(settings), contextlib.ExitStack() as stack:
         if progress:
-            stack.enter_context(_PatchProgress(progress, total))
-        return result.compute()
+            stack.enter_context(_PatchProgress(progress, len(tasks)))
+        try:
+            return list(dask.compute(*tasks))
+        except BrokenProcessPool:
+            raise LabkitError(
+                "a worker process solving the patches died (killed, or out of memory); "
+                "nothing was written: run again (a new pool starts), or use --scheduler "
+                "threads"
+            ) from None
 
 
 class _PatchProgress(dask.callbacks.Callback):
@@ -535,17 +542,20 @@ class _PatchProgress(dask.callbacks.Callback):
 
     def _posttask(self, key, result, dsk, state, worker_id) -> None:
         name = key[0] if isinstance(key, tuple) else key
-        if str(name).startswith("labkit-reconstruct-patch"):
+        if str(name).startswith(PATCH_TASK):
             self.done += 1
             self.progress(self.done, self.total)
 
 
 __all__: Sequence[str] = (
+    "LOCAL_SCHEDULERS",
+    "PATCH_TASK",
     "PHI_STATES",
     "SERIAL_SCHEDULERS",
     "PatchOptions",
     "SolverOptions",
     "chunk_sizes",
+    "default_scheduler",
     "reconstruct_patches",
     "solve_patch",
 )

@@ -43,6 +43,7 @@ from reconstruction.patches import (
     SERIAL_SCHEDULERS,
     PatchOptions,
     SolverOptions,
+    default_scheduler,
     max_dispersion,
     noise_sigma,
     reconstruct_patches,
@@ -53,6 +54,7 @@ from reconstruction.problem import Problem
 from reconstruction.result import Reconstruction
 from reconstruction.solvers.admm import absolute_tolerance
 from reconstruction.weights import select_weights
+from reconstruction.worker_pool import start_worker_pool
 
 MAX_RAW_MAGNITUDE = 1e30
 """Largest abs(raw value) accepted (and smallest non-zero peak, as its inverse): the spectral
@@ -168,6 +170,8 @@ def reconstruct(
     elif keywords:
         options = replace(options, **keywords)
     job = prepare_problem(raw, options, truth=truth)
+    if (job.options.scheduler or default_scheduler()) == "processes":
+        start_worker_pool()  # in the background, while the weights are chosen
     weights = choose_weights(job, truth=truth)
     latent, records = solve_patches(job, weights, progress=progress)
     result = assemble(job, latent, records)

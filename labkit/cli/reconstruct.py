@@ -87,9 +87,10 @@ def register(commands: argparse._SubParsersAction) -> None:
         _add_declared(parser, spec)
     parser.add_argument(
         "--scheduler",
-        default="threads",
+        default=None,
         metavar="threads|processes|sync|tcp://HOST:PORT|tls://HOST:PORT",
-        help="Dask scheduler for the patches: local threads (default), local processes, "
+        help="Dask scheduler for the patches: local threads (default), a pool of local "
+        "processes, one per core (faster on several cores; kept for the whole command), "
         "synchronous, or a dask.distributed scheduler's address (tcp:// is neither "
         "authenticated nor encrypted: use it on a trusted network only; tls:// uses the "
         "certificates of Dask's configuration, distributed.comm.tls.*)",
@@ -166,7 +167,7 @@ def _run(args: argparse.Namespace, job: _Job) -> int:
     except OSError as error:
         from reconstruction.patches import REMOTE_SCHEMES
 
-        if not args.scheduler.startswith(REMOTE_SCHEMES):
+        if not (args.scheduler or "").startswith(REMOTE_SCHEMES):
             raise
         raise DataError(_unreachable(args.scheduler, error)) from None
     finally:
@@ -287,10 +288,10 @@ def _declared(args: argparse.Namespace) -> dict[str, Any]:
     return given
 
 
-def _scheduler(value: str) -> str:
+def _scheduler(value: str | None) -> str | None:
     from reconstruction.patches import probe_scheduler, scheduler_address
 
-    if value in SCHEDULERS:
+    if value is None or value in SCHEDULERS:
         return value
     try:
         scheduler_address(value)

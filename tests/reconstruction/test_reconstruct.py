@@ -13,7 +13,7 @@ from test_dispersion_operator import ConstantField
 from test_image_formation import spectral_model
 
 from labkit.cfa import mosaic
-from labkit.errors import DataError
+from labkit.errors import DataError, LabkitError
 from labkit.spectra import camera_response
 from reconstruction.image_formation import LatentSpace, build_formation
 from reconstruction.problem import SUGGESTED_SMOOTHNESS
@@ -381,6 +381,68 @@ def test_local_cluster_of_two_processes_equals_the_local_scheduler() -> None:
     assert [r["iterations"] for r in remote.log["patch_records"]] == [
         r["iterations"] for r in local.log["patch_records"]
     ]
+
+
+def test_every_local_scheduler_gives_the_same_image_and_records() -> None:
+    """The pool of processes, threads (the default) and the calling thread solve the same
+    patches to the same bits, report every patch to `progress`, and the pool's workers are
+    other processes, kept for the next reconstruction."""
+    from reconstruction.worker_pool import worker_pids
+
+    rng = np.random.default_rng(5)
+    space = LatentSpace.spectral(RESPONSE_RGB)
+    model = spectral_model(ConstantField((0.6, -0.4), per_nm=True), shape=(64, 96))
+    raw = build_formation(space, (64, 96), "GBRG", model=model, interpolation="bilinear").forward(
+        blobs((64, 96), space.channels, rng)
+    )
+    settings = {
+        "cfa": "GBRG",
+        "response": RESPONSE_RGB,
+        "dispersion": model,
+        "weights": "fixed:0.003",
+        "patch_px": 32,
+        "pad_px": 8,
+        "flat_threshold": None,
+    }
+    done: dict[str, list[tuple[int, int]]] = {}
+    results = {
+        name: reconstruct(
+            raw, scheduler=name, progress=lambda *a, n=name: done.setdefault(n, []).append(a),
+            **settings,
+        )
+        for name in ("processes", "threads", "sync")
+    }  # fmt: skip
+    pids = worker_pids()
+    assert pids and os.getpid() not in pids
+    for name in ("threads", "sync"):
+        np.testing.assert_array_equal(results[name].spectral, results["processes"].spectral)
+        assert results[name].log["patch_records"] == [
+            {**r, "seconds": results[name].log["patch_records"][i]["seconds"],
+             "formation_seconds": results[name].log["patch_records"][i]["formation_seconds"]}
+            for i, r in enumerate(results["processes"].log["patch_records"])
+        ]  # fmt: skip
+    assert all(sorted(calls) == [(k, 6) for k in range(1, 7)] for calls in done.values())
+    assert set(done) == {"processes", "threads", "sync"}
+    reconstruct(raw, scheduler="processes", **settings)  # the same pool again
+    assert worker_pids() == pids
+
+
+def test_a_worker_that_dies_breaks_that_run_only() -> None:
+    """A pool worker killed between runs: the next run starts a new pool and succeeds."""
+    import signal
+
+    from reconstruction.worker_pool import worker_pids, worker_pool
+
+    worker_pool().submit(os.getpid).result()
+    os.kill(worker_pids()[0], signal.SIGKILL)
+    raw = grey_raw()
+    settings = {"cfa": "GBRG", "response": RESPONSE_RGB, "weights": "fixed:0.01"}
+    try:
+        reconstruct(raw, scheduler="processes", **settings)
+    except LabkitError as error:  # the pool may notice the death only during this run
+        assert "worker process solving the patches died" in str(error)
+    result = reconstruct(raw, scheduler="processes", **settings)
+    assert np.all(np.isfinite(result.spectral))
 
 
 def test_sensor_map_bands_take_their_filters_light() -> None:
