@@ -6,8 +6,8 @@ edge repetition, which keeps each pixel's Bayer colour, and split into chunks of
 supplies them at the image border), is one Dask task of :func:`solve_patch`; the patch is
 solved with periodic priors and only its chunk is kept (the overlap is discarded, not
 blended). The tasks run on local threads by default, on a persistent pool of local
-processes (:mod:`~reconstruction.worker_pool`: threads spend much of a patch waiting for
-the interpreter lock), on the calling thread, or on any ``dask.distributed`` cluster.
+processes (:mod:`~reconstruction.worker_pool`, which share no interpreter lock), on the
+calling thread, or on any ``dask.distributed`` cluster.
 
 What a patch may skip
 ---------------------
@@ -481,10 +481,9 @@ PATCH_TASK = "labkit-reconstruct-patch"
 
 
 def default_scheduler() -> str:
-    """``"threads"``: the pool of processes is faster on two cores or more (docs, speed), but
-    its workers import the caller's main module, as every ``spawn``-type pool does, which
-    runs a script without an ``if __name__ == "__main__"`` guard again; it is chosen by
-    name."""
+    """``"threads"``. The pool of processes is chosen by name: its workers import the
+    caller's main module, as every ``spawn``-type pool's do, which runs a script without an
+    ``if __name__ == "__main__"`` guard again."""
     return "threads"
 
 

@@ -1,12 +1,12 @@
 """A persistent pool of worker processes for the patches (the ``processes`` scheduler).
 
 A patch's solve is many NumPy operations on arrays of some 30 000 values, each a few tens
-of µs: on threads, most of that time is spent waiting for the interpreter lock, and two
-threads solve the patches markedly less than twice as fast as one, two processes about
-twice as fast (figures: docs, speed). Starting a pool of processes costs seconds (each
-imports NumPy, SciPy and labkit), so one pool is started per Python process, in the
-background as soon as a reconstruction begins (:func:`start_worker_pool`, during the
-weight search), and kept for later reconstructions.
+of µs; on threads, part of that time is spent waiting for the interpreter lock, which
+separate processes do not share. Whether that makes them faster depends on the machine
+and the image (measurements so far disagree: an open question of issue 53). Starting a
+pool of processes costs seconds (each imports NumPy, SciPy and labkit), so one pool is
+started per Python process, in the background as soon as a reconstruction begins
+(:func:`start_worker_pool`, during the weight search), and kept for later reconstructions.
 
 The workers are forked from a ``forkserver`` that has imported :data:`PRELOAD`: no thread
 of the caller is copied into a worker (``fork`` of a process with threads can deadlock the

@@ -90,7 +90,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         default=None,
         metavar="threads|processes|sync|tcp://HOST:PORT|tls://HOST:PORT",
         help="Dask scheduler for the patches: local threads (default), a pool of local "
-        "processes, one per core (faster on several cores; kept for the whole command), "
+        "processes, one per core (started once per command), "
         "synchronous, or a dask.distributed scheduler's address (tcp:// is neither "
         "authenticated nor encrypted: use it on a trusted network only; tls:// uses the "
         "certificates of Dask's configuration, distributed.comm.tls.*)",
