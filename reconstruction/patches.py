@@ -273,17 +273,17 @@ def solve_patch(
     # every CG solve: ADMM's quadratic steps and the active-set methods' restricted solves
     cg = report.cg_iterations + ([] if report.polish is None else report.polish.cg_iterations)
     record.update(
-        iterations=report.iterations,
-        converged=float(report.converged),
-        flat=float(flat),
-        phi=phi_state,
-        cg_max=max(cg) if cg else 0,
+        iterations=int(report.iterations),
+        converged=bool(report.converged),
+        flat=bool(flat),
+        phi=PHI_STATES[phi_state],
+        cg_max=int(max(cg)) if cg else 0,
         cg_mean=float(np.mean(cg)) if cg else 0.0,
-        objective=report.objective,
-        samples=formation.colour_matrices.shape[0],
-        active=0 if report.polish is None else report.polish.active,
-        polish_rounds=0 if report.polish is None else report.polish.rounds,
-        exact=float(report.polish is not None and report.polish.status == "optimal"),
+        objective=float(report.objective),
+        samples=int(formation.colour_matrices.shape[0]),
+        active=0 if report.polish is None else int(report.polish.active),
+        polish_rounds=0 if report.polish is None else int(report.polish.rounds),
+        exact=report.polish is not None and report.polish.status == "optimal",
         seconds=time.perf_counter() - start,
     )
     return solution.latent, record
@@ -373,12 +373,6 @@ def reconstruct_patches(
     records = []
     for (r0, c0, core_rows, core_cols), (core, record) in zip(places, results, strict=True):
         full[r0 : r0 + core_rows, c0 : c0 + core_cols] = core
-        record = dict(record)
-        record["phi"] = PHI_STATES[int(record["phi"])]
-        for key in ("converged", "flat", "exact"):
-            record[key] = bool(record[key])
-        for key in ("iterations", "cg_max", "samples", "active", "polish_rounds"):
-            record[key] = int(record[key])
         records.append({"row": r0, "col": c0, "rows": core_rows, "cols": core_cols, **record})
     return full, records
 
