@@ -343,11 +343,10 @@ def test_l1_type_weights_leave_machine_epsilon(
         assert best <= 1.02 * mse(3 * w)
 
 
-def test_local_cluster_of_two_processes_equals_the_local_scheduler() -> None:
-    """The same image on a dask.distributed LocalCluster (2 worker processes) to 1e-6."""
-    from distributed import Client, LocalCluster
-
-    rng = np.random.default_rng(4)
+def six_dispersive_patches(seed: int) -> tuple[np.ndarray, dict]:
+    """A 64×96 raw image of blobs under a constant dispersion, and settings that cut it into
+    six patches which all use Φ."""
+    rng = np.random.default_rng(seed)
     space = LatentSpace.spectral(RESPONSE_RGB)
     model = spectral_model(ConstantField((0.6, -0.4), per_nm=True), shape=(64, 96))
     raw = build_formation(space, (64, 96), "GBRG", model=model, interpolation="bilinear").forward(
@@ -362,6 +361,14 @@ def test_local_cluster_of_two_processes_equals_the_local_scheduler() -> None:
         "pad_px": 8,
         "flat_threshold": None,
     }
+    return raw, settings
+
+
+def test_local_cluster_of_two_processes_equals_the_local_scheduler() -> None:
+    """The same image on a dask.distributed LocalCluster (2 worker processes) to 1e-6."""
+    from distributed import Client, LocalCluster
+
+    raw, settings = six_dispersive_patches(4)
     local = reconstruct(raw, scheduler="threads", **settings)
     with (
         LocalCluster(
@@ -389,21 +396,7 @@ def test_every_local_scheduler_gives_the_same_image_and_records() -> None:
     other processes, kept for the next reconstruction."""
     from reconstruction.worker_pool import worker_pids
 
-    rng = np.random.default_rng(5)
-    space = LatentSpace.spectral(RESPONSE_RGB)
-    model = spectral_model(ConstantField((0.6, -0.4), per_nm=True), shape=(64, 96))
-    raw = build_formation(space, (64, 96), "GBRG", model=model, interpolation="bilinear").forward(
-        blobs((64, 96), space.channels, rng)
-    )
-    settings = {
-        "cfa": "GBRG",
-        "response": RESPONSE_RGB,
-        "dispersion": model,
-        "weights": "fixed:0.003",
-        "patch_px": 32,
-        "pad_px": 8,
-        "flat_threshold": None,
-    }
+    raw, settings = six_dispersive_patches(5)
     done: dict[str, list[tuple[int, int]]] = {}
     results = {
         name: reconstruct(
