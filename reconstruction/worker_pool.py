@@ -99,10 +99,12 @@ def _ready() -> int:
 def start_worker_pool(workers: int | None = None) -> None:
     """Start the pool's processes in the background (returns at once)."""
 
+    count = workers or available_cores()
+
     def start() -> None:
-        pool = worker_pool(workers)
+        pool = worker_pool(count)
         with contextlib.suppress(Exception):  # a broken pool is the run's to report
-            for future in [pool.submit(_ready) for _ in range(_size)]:
+            for future in [pool.submit(_ready) for _ in range(count)]:
                 future.result()
 
     threading.Thread(target=start, name="labkit-worker-pool-start", daemon=True).start()
