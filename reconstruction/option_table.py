@@ -355,8 +355,8 @@ OPTION_TABLE: tuple[OptionSpec, ...] = (
         "flat_threshold",
         "--flat-threshold",
         "number",
-        "relative texture above the image's noise below which a patch counts as flat and "
-        "skips Φ (none: never skip)",
+        "largest same-channel step above the image's noise, relative to a patch's level, "
+        "below which the patch counts as flat and skips Φ (none: never skip)",
         least=0.0,
         optional=True,
         metavar="T",

@@ -211,8 +211,8 @@ class ReconstructOptions:
         Overlap on each side, px (even); default the smallest even value ≥ 8 and ≥ twice the
         model's largest displacement.
     flat_threshold : float or None
-        Relative texture above the image's noise below which a patch counts as flat
-        (None: never skip).
+        Largest same-channel step above the image's noise, relative to a patch's mean
+        level, below which the patch counts as flat and skips Φ (None: never skip).
     weight_patches : int or sequence of (row, col)
         How many representative patches to select weights on (chosen by texture), or
         their origins.

@@ -184,6 +184,26 @@ def test_noisy_flat_scene_is_still_taken_as_flat() -> None:
     np.testing.assert_allclose(result.raw_colour.mean(axis=(0, 1)), [0.3, 0.5, 0.2], rtol=2e-3)
 
 
+def test_a_patch_crossed_by_one_edge_is_not_flat() -> None:
+    """Grey with a dark disk whose edge runs through the corners of four patches (a few
+    percent of their pixels): those patches use Φ, the two without it stay flat."""
+    raw = grey_raw((64, 96))
+    rows, cols = np.mgrid[0:64, 0:96]
+    raw = raw * np.where((rows - 32) ** 2 + (cols - 32) ** 2 <= 6**2, 0.3, 1.0)
+    model = spectral_model(ConstantField((0.4, -0.3), per_nm=True), shape=(64, 96))
+    result = reconstruct(
+        raw,
+        cfa="GBRG",
+        response=RESPONSE_RGB,
+        dispersion=model,
+        weights="fixed:0.01",
+        patch_px=32,
+        pad_px=8,
+    )
+    summary = result.log["patches"]
+    assert (summary["phi_used"], summary["phi_skipped_flat"]) == (4, 2)
+
+
 def test_negligible_dispersion_is_skipped_and_textured_patches_use_phi() -> None:
     rng = np.random.default_rng(0)
     space = LatentSpace.spectral(RESPONSE_RGB)
