@@ -70,7 +70,7 @@ _FIELDS = (
     "objective",
     "seconds",
     "max_shift_px",
-    "texture",
+    "largest_step",
     "samples",
     "flat",
     "active",
@@ -251,8 +251,8 @@ def solve_patch(
     start = time.perf_counter()
     shape = raw.shape
     record = dict.fromkeys(_FIELDS, 0.0)
-    record["texture"] = largest_step(raw, options.noise_sigma)
-    flat = options.flat_threshold is not None and record["texture"] < options.flat_threshold
+    record["largest_step"] = largest_step(raw, options.noise_sigma)
+    flat = options.flat_threshold is not None and record["largest_step"] < options.flat_threshold
     phi_state = 0
     use_model = None
     if model is not None:
