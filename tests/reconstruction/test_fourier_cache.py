@@ -77,4 +77,5 @@ def test_solvers_with_dispersion_are_not_cached() -> None:
     per_frequency = np.broadcast_to(colour.astype(complex), (*SHAPE, *colour.shape)).copy()
     a = _solver(colour=per_frequency)
     b = _solver(colour=per_frequency)
-    assert a._key is None and b._inverse is not a._inverse
+    assert a._key is None and a._factored is not None
+    assert b._dense_blocks()[1] is not a._dense_blocks()[1]

@@ -176,10 +176,11 @@ def _radial_patch_formation() -> ImageFormation:
 @pytest.mark.parametrize("identity", [1e-9, 1e-3, 1.0])
 def test_fourier_solver_blocks_match_a_direct_inverse(identity: float) -> None:
     """The blocks are inverted by the Woodbury identity (the data term is rank 4 per
-    quadruple), with a direct inverse where that loses digits (the mean at a tiny β): with
-    Φ (a radial field), L2 and spectral smoothness, every block is within 1e-9 of
-    ``np.linalg.inv`` of the same block (relative to its largest entry), at a ridge-sized,
-    a small and a large β."""
+    quadruple; with Φ applied in factored form), with a direct inverse where that loses
+    digits (the mean at a tiny β): with Φ (a radial field), L2 and spectral smoothness,
+    every block is within 1e-9 of ``np.linalg.inv`` of the same block (relative to its
+    largest entry), at a ridge-sized, a small and a large β; a factored solve equals the
+    dense inverse's to 1e-9."""
     from reconstruction.solvers import fourier
 
     fourier._LOCAL.clear()
@@ -188,9 +189,17 @@ def test_fourier_solver_blocks_match_a_direct_inverse(identity: float) -> None:
     solver = FourierSolver((24, 36), "GBRG", a.fourier_colour(), terms=terms, identity=identity)
     assert solver.dispersive
     assert len(fourier._LOCAL._entries) == 2  # the priors' blocks and their inverse at β
-    direct = np.linalg.inv(solver._matrix)
+    assert solver._factored is not None  # applied in factored form, formed here to compare
+    matrix, inverse = solver._dense_blocks()
+    direct = np.linalg.inv(matrix)
     scale = np.abs(direct).max(axis=(1, 2), keepdims=True)
-    assert np.max(np.abs(solver._inverse - direct) / scale) < 1e-9
+    assert np.max(np.abs(inverse - direct) / scale) < 1e-9
+    # the factored solve is the dense inverse's (one solve of a random image)
+    b = np.random.default_rng(8).standard_normal((24, 36, matrix.shape[1] // 4))
+    dense = solver._apply_quadruples(b, inverse=True, blocks=inverse)
+    np.testing.assert_allclose(
+        solver.solve(b, refine=False), dense, rtol=0, atol=1e-9 * np.abs(dense).max()
+    )
 
 
 def test_patches_with_phi_share_the_priors_inverse() -> None:
