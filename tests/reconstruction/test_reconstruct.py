@@ -69,12 +69,10 @@ def test_bad_input_is_refused_early(change: dict, message: str) -> None:
         reconstruct(raw, **kwargs)
 
 
-def test_flat_scene_is_reproduced_and_skipped() -> None:
-    """A uniform grey mosaic: raw colour back to 1e-3 (the smoothness term leaves a flat
-    patch's colour free), every patch flat, Φ skipped."""
-    raw = grey_raw((64, 96))
+def _six_patches_with_phi(raw: np.ndarray):
+    """`raw` (64 × 96) in six 32-px patches, with a constant dispersion."""
     model = spectral_model(ConstantField((0.4, -0.3), per_nm=True), shape=(64, 96))
-    result = reconstruct(
+    return reconstruct(
         raw,
         cfa="GBRG",
         response=RESPONSE_RGB,
@@ -83,6 +81,13 @@ def test_flat_scene_is_reproduced_and_skipped() -> None:
         patch_px=32,
         pad_px=8,
     )
+
+
+def test_flat_scene_is_reproduced_and_skipped() -> None:
+    """A uniform grey mosaic: raw colour back to 1e-3 (the smoothness term leaves a flat
+    patch's colour free), every patch flat, Φ skipped."""
+    raw = grey_raw((64, 96))
+    result = _six_patches_with_phi(raw)
     np.testing.assert_allclose(
         result.raw_colour, np.broadcast_to([0.3, 0.5, 0.2], (64, 96, 3)), rtol=1e-3
     )
@@ -190,16 +195,7 @@ def test_a_patch_crossed_by_one_edge_is_not_flat() -> None:
     raw = grey_raw((64, 96))
     rows, cols = np.mgrid[0:64, 0:96]
     raw = raw * np.where((rows - 32) ** 2 + (cols - 32) ** 2 <= 6**2, 0.3, 1.0)
-    model = spectral_model(ConstantField((0.4, -0.3), per_nm=True), shape=(64, 96))
-    result = reconstruct(
-        raw,
-        cfa="GBRG",
-        response=RESPONSE_RGB,
-        dispersion=model,
-        weights="fixed:0.01",
-        patch_px=32,
-        pad_px=8,
-    )
+    result = _six_patches_with_phi(raw)
     summary = result.log["patches"]
     assert (summary["phi_used"], summary["phi_skipped_flat"]) == (4, 2)
 
