@@ -186,31 +186,44 @@ class _BlockCache:
 _BLOCKS = _BlockCache(BLOCK_CACHE_SIZE)
 
 
-def _woodbury_inverse(mosaic: np.ndarray, local_inverse: np.ndarray) -> np.ndarray | None:
-    """``(UᴴU + R)⁻¹`` per quadruple by the Woodbury identity, or None if it fails.
+def _add_block_diagonal(dense: np.ndarray, blocks: np.ndarray) -> np.ndarray:
+    """`dense` (H, 4n, 4n) with the 4 (n × n) `blocks` (H, 4, n, n) added on its diagonal,
+    in place; returns `dense`."""
+    nq, _, n, _ = blocks.shape
+    view = dense.reshape(nq, 4, n, 4, n)
+    for s in range(4):
+        view[:, s, :, s, :] += blocks[:, s]
+    return dense
+
+
+def _woodbury_factors(mosaic: np.ndarray, local_inverse: np.ndarray) -> tuple[np.ndarray, ...]:
+    """V = R⁻¹Uᴴ (H, 4n, 4) and W = V C⁻¹ with the capacitance C = I + U R⁻¹ Uᴴ (4 × 4), so
+    that ``(UᴴU + R)⁻¹ = R⁻¹ − W Vᴴ`` per quadruple.
 
     ``mosaic`` is U, (H or 1, 4, 4n); ``local_inverse`` R⁻¹ of the block-diagonal R,
     (H, 4, n, n): the priors and β at the quadruple's 4 frequencies, the same for every
-    patch of a size (:func:`_local_inverse`). A 4 × 4 capacitance ``I + U R⁻¹ Uᴴ``
-    replaces the 4n × 4n inverse (a third of its time). Where R is ill-conditioned (the
-    mean at small β) the subtraction loses digits: :func:`_accurate_inverse` checks each
-    block.
+    patch of a size (:func:`_local_inverse`). Raises ``LinAlgError`` for a singular C.
     """
     nq, _, n, _ = local_inverse.shape
-    mosaic = np.broadcast_to(mosaic, (nq, 4, 4 * n)).reshape(nq, 4, 4, n)
+    u = np.broadcast_to(mosaic, (nq, 4, 4 * n))
     # V = R⁻¹ Uᴴ, (H, 4 members, n, 4 raw frequencies)
-    v = np.matmul(local_inverse, np.conj(np.swapaxes(mosaic, 1, 3)).swapaxes(1, 2))
+    v = np.matmul(local_inverse, np.conj(np.swapaxes(u.reshape(nq, 4, 4, n), 1, 3)).swapaxes(1, 2))
     v = v.reshape(nq, 4 * n, 4)
-    capacitance = np.eye(4) + mosaic.reshape(nq, 4, 4 * n) @ v
+    return v, v @ np.linalg.inv(np.eye(4) + u @ v)
+
+
+def _woodbury_inverse(mosaic: np.ndarray, local_inverse: np.ndarray) -> np.ndarray | None:
+    """``(UᴴU + R)⁻¹`` per quadruple by the Woodbury identity (:func:`_woodbury_factors`),
+    or None if it fails. A 4 × 4 capacitance replaces the 4n × 4n inverse (a third of its
+    time). Where R is ill-conditioned (the mean at small β) the subtraction loses digits:
+    :func:`_accurate_inverse` checks each block.
+    """
     try:
-        correction = np.linalg.inv(capacitance) @ np.conj(np.swapaxes(v, 1, 2))
+        v, w = _woodbury_factors(mosaic, local_inverse)
     except np.linalg.LinAlgError:
         return None
-    inverse = -(v @ correction).astype(np.complex128, copy=False)
-    blocks = inverse.reshape(nq, 4, n, 4, n)
-    for s in range(4):
-        blocks[:, s, :, s, :] += local_inverse[:, s]
-    return inverse
+    inverse = -(w @ np.conj(np.swapaxes(v, 1, 2))).astype(np.complex128, copy=False)
+    return _add_block_diagonal(inverse, local_inverse)
 
 
 def _accurate_inverse(
@@ -263,12 +276,8 @@ class _FactoredInverse:
         self.n = n
         self.mosaic = np.broadcast_to(mosaic, (nq, 4, 4 * n))
         self.local, self.local_inverse = local, local_inverse
-        u = self.mosaic.reshape(nq, 4, 4, n)
-        v = np.matmul(local_inverse, np.conj(np.swapaxes(u, 1, 3)).swapaxes(1, 2))
-        v = v.reshape(nq, 4 * n, 4)
-        capacitance = np.eye(4) + self.mosaic @ v
+        v, self.w = _woodbury_factors(mosaic, local_inverse)
         self.vh = np.conj(np.swapaxes(v, 1, 2))
-        self.w = v @ np.linalg.inv(capacitance)
         self.redo = np.zeros(0, dtype=np.intp)
         self.direct = np.zeros((0, 4 * n, 4 * n), dtype=np.complex128)
         probes = np.broadcast_to(probe.astype(np.complex128), (nq, 4 * n, 1))
@@ -305,19 +314,11 @@ class _FactoredInverse:
     def dense_matrix(self, blocks: np.ndarray | slice = slice(None)) -> np.ndarray:
         """K's blocks (all, or those indexed by `blocks`) as dense (·, 4n, 4n) matrices."""
         u = self.mosaic[blocks]
-        matrix = (np.conj(np.swapaxes(u, 1, 2)) @ u).reshape(-1, 4, self.n, 4, self.n)
-        local = self.local[blocks]
-        for s in range(4):
-            matrix[:, s, :, s, :] += local[:, s]
-        return matrix.reshape(-1, 4 * self.n, 4 * self.n)
+        return _add_block_diagonal(np.conj(np.swapaxes(u, 1, 2)) @ u, self.local[blocks])
 
     def dense_inverse(self) -> np.ndarray:
         """K⁻¹ as dense (H, 4n, 4n) blocks (for single-precision solves and impulses)."""
-        nq, n = self.local.shape[0], self.n
-        inverse = -(self.w @ self.vh).reshape(nq, 4, n, 4, n)
-        for s in range(4):
-            inverse[:, s, :, s, :] += self.local_inverse[:, s]
-        inverse = inverse.reshape(nq, 4 * n, 4 * n)
+        inverse = _add_block_diagonal(-(self.w @ self.vh), self.local_inverse)
         inverse[self.redo] = self.direct
         return inverse
 
@@ -494,9 +495,13 @@ class FourierSolver:
         local_inverse = _local_inverse((*self._prior_key, float(identity)), local)
         self._factored = self._dense = None
         if self.dispersive and local_inverse is not None:
-            # every patch has its own K̃: applied in factored form, never formed
-            factored = _FactoredInverse(self._mosaic, local, local_inverse, probe)
-            worst = float(np.max(factored.residuals))
+            # every patch has its own K̃: applied in factored form, never formed (a singular
+            # capacitance or block falls through to the dense path, which reports it)
+            try:
+                factored = _FactoredInverse(self._mosaic, local, local_inverse, probe)
+                worst = float(np.max(factored.residuals))
+            except np.linalg.LinAlgError:
+                worst = math.inf
             if worst <= SINGULAR_RESIDUAL:
                 self._factored = factored
                 self._matrix = self._inverse = None  # type: ignore[assignment]
@@ -507,10 +512,7 @@ class FourierSolver:
         if self._data is None:
             self._data = np.conj(np.swapaxes(self._mosaic, 1, 2)) @ self._mosaic
         matrix = np.broadcast_to(self._data, (nq, 4 * n, 4 * n)).astype(np.complex128)
-        matrix = matrix.reshape(nq, 4, n, 4, n)
-        for s in range(4):
-            matrix[:, s, :, s, :] += local[:, s]
-        self._matrix = matrix.reshape(nq, 4 * n, 4 * n)
+        self._matrix = _add_block_diagonal(matrix, local)
         inverse = None if local_inverse is None else _woodbury_inverse(self._mosaic, local_inverse)
         inverse, residuals = _accurate_inverse(self._matrix, inverse, probe)
         worst = float(np.max(residuals)) if inverse is not None else math.inf
