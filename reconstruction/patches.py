@@ -181,15 +181,21 @@ def noise_sigma(raw: np.ndarray) -> float:
     return float(np.percentile(per_block, 10) / (0.6745 * np.sqrt(6.0)))
 
 
+def _same_channel_steps(raw: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """|differences 2 px apart| along rows and along columns (same Bayer channel), and the
+    patch's mean level (at least 1e-12)."""
+    dx = np.abs(raw[:, 2:] - raw[:, :-2])
+    dy = np.abs(raw[2:, :] - raw[:-2, :])
+    return dx, dy, max(float(np.mean(np.abs(raw))), 1e-12)
+
+
 def texture(raw: np.ndarray, noise: float = 0.0) -> float:
     """Relative texture of a raw patch above its noise.
 
     ``(p95 |same-channel 2-px difference| − 1.96 √2 · 1.15 σ) / mean level``, at least 0;
     with ``noise = 0`` the plain relative p95.
     """
-    dx = np.abs(raw[:, 2:] - raw[:, :-2])
-    dy = np.abs(raw[2:, :] - raw[:-2, :])
-    level = max(float(np.mean(np.abs(raw))), 1e-12)
+    dx, dy, level = _same_channel_steps(raw)
     p95 = max(np.percentile(dx, 95), np.percentile(dy, 95))
     return float(max(p95 - _NOISE_P95 * noise, 0.0) / level)
 
@@ -203,12 +209,10 @@ def largest_step(raw: np.ndarray, noise: float = 0.0) -> float:
     the plain relative maximum. Unlike :func:`texture`'s 95th percentile, one edge
     crossing a corner of the patch counts: translating the patch moves that edge.
     """
-    dx = np.abs(raw[:, 2:] - raw[:, :-2])
-    dy = np.abs(raw[2:, :] - raw[:-2, :])
+    dx, dy, level = _same_channel_steps(raw)
     count = dx.size + dy.size
     if count == 0:
         return 0.0
-    level = max(float(np.mean(np.abs(raw))), 1e-12)
     z = float(ndtri(1.0 - _NOISE_MAX_EXCEEDANCE / (2 * count)))
     allowance = z * np.sqrt(2.0) * _NOISE_ESTIMATE_MARGIN * noise
     return float(max(max(dx.max(), dy.max()) - allowance, 0.0) / level)

@@ -226,6 +226,13 @@ def _woodbury_inverse(mosaic: np.ndarray, local_inverse: np.ndarray) -> np.ndarr
     return _add_block_diagonal(inverse, local_inverse)
 
 
+def _relative_residuals(product: np.ndarray, probe: np.ndarray) -> np.ndarray:
+    """Each block's ``‖K K⁻¹ p − p‖ / ‖p‖`` from the products K K⁻¹ p (·, 4n, 1) and the
+    probe p, the same vector in every block ((1 or ·), 4n, 1)."""
+    error = np.linalg.norm(product - probe, axis=(1, 2))
+    return error / float(np.linalg.norm(probe[0]))
+
+
 def _accurate_inverse(
     matrix: np.ndarray, inverse: np.ndarray | None, probe: np.ndarray
 ) -> tuple[np.ndarray | None, np.ndarray]:
@@ -236,8 +243,7 @@ def _accurate_inverse(
     """
 
     def residuals(k: np.ndarray, k_inverse: np.ndarray) -> np.ndarray:
-        error = np.linalg.norm(k @ (k_inverse @ probe) - probe, axis=(1, 2))
-        return error / float(np.linalg.norm(probe))
+        return _relative_residuals(k @ (k_inverse @ probe), probe)
 
     if inverse is None:  # every block directly
         inverse, result = np.empty_like(matrix), np.full(matrix.shape[0], math.inf)
@@ -281,19 +287,13 @@ class _FactoredInverse:
         self.redo = np.zeros(0, dtype=np.intp)
         self.direct = np.zeros((0, 4 * n, 4 * n), dtype=np.complex128)
         probes = np.broadcast_to(probe.astype(np.complex128), (nq, 4 * n, 1))
-        self.residuals = self._residuals(self.solve(probes), probes)
+        self.residuals = _relative_residuals(self.multiply(self.solve(probes)), probe)
         redo = np.flatnonzero(~(self.residuals <= WOODBURY_RESIDUAL))
         if redo.size:
             matrix = self.dense_matrix(redo)
             self.direct = np.linalg.inv(matrix)
             self.redo = redo
-            self.residuals[redo] = self._residuals(self.solve(probes)[redo], probes[redo], matrix)
-
-    def _residuals(
-        self, x: np.ndarray, b: np.ndarray, matrix: np.ndarray | None = None
-    ) -> np.ndarray:
-        kx = self.multiply(x) if matrix is None else matrix @ x
-        return np.linalg.norm(kx - b, axis=(1, 2)) / float(np.linalg.norm(b[0]))
+            self.residuals[redo] = _relative_residuals(matrix @ (self.direct @ probe), probe)
 
     def solve(self, spectrum: np.ndarray) -> np.ndarray:
         """K⁻¹ s for the kept quadruples' spectra s (H, 4n, m)."""
