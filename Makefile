@@ -43,7 +43,7 @@ bench: venv
 	exit $$status
 
 # ruff, the layers of pyproject.toml's import contracts and mypy on the typed packages
-# (README, Architecture)
+# (docs/architecture.md)
 lint: venv
 	$(VENV)/bin/ruff check labkit calibration reconstruction tests
 	$(VENV)/bin/ruff format --check labkit calibration reconstruction tests

@@ -10,7 +10,7 @@ combinations of products of one-variable polynomials in *normalised* coordinates
 Basis
 -----
 The thesis writes the models with monomials xⁱ yʲ λᵏ of normalised coordinates. Their
-design matrices grow ill-conditioned with the degree (figures in the README, calibration),
+design matrices grow ill-conditioned with the degree (figures in docs/notes/calibration.md),
 so we use the **Legendre** polynomials Pᵢ(u) Pⱼ(v) Pₖ(w) instead, where (u, v, w) are the normalised
 coordinates mapped affinely onto [−1, 1] over the fitting data (:class:`Domain`). For
 every degree this spans exactly the same space of polynomials as the monomials (Pₙ has
@@ -45,7 +45,7 @@ instead, and skipped when that design is numerically singular or has more column
 training rows. Validation errors come from the validation Gram matrix
 (``‖y‖² − 2 cᵀXᵀy + cᵀXᵀXc``), or directly from the residuals where that expression would
 lose precision. BLAS runs at labkit's fixed thread count (:mod:`labkit.blas_threads`).
-Its run time is in the README (calibration) and ``labkit bench calibrate``.
+Its run time is in docs/notes/calibration.md and ``labkit bench calibrate``.
 """
 
 from __future__ import annotations

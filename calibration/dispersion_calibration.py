@@ -36,7 +36,7 @@ from labkit.io.exr import RawImage
 
 #: Bands whose recorded signal is less in-band than this are left out by default. Chosen
 #: between the leak-dominated and the clean bands of both the simulated rig and the real
-#: frames, with their measured purities (README, "Band selection") on either side.
+#: frames, with their measured purities (docs/data.md, "Band selection") on either side.
 MIN_PURITY = 0.8
 CHANNELS = ("R", "G", "B")
 

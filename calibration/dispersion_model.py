@@ -15,7 +15,7 @@ Directions (thesis §3.2.4, last paragraph):
     input = position q in the band image, output = e such that the feature is at
     q + e in the reference image. Used in image formation (reconstruction).
 
-The YAML file (``format: 1``) is documented in the README; :func:`load_dispersion_model`
+The YAML file (``format: 1``) is documented in docs/formats.md; :func:`load_dispersion_model`
 reads it back and validates every field, naming the file and key of any problem.
 """
 
@@ -397,7 +397,7 @@ class DispersionModel:
 
 
 def load_dispersion_model(path: str | Path) -> DispersionModel:
-    """Read a dispersion model YAML file (see the README for its format).
+    """Read a dispersion model YAML file (see docs/formats.md for its format).
 
     Raises
     ------

@@ -10,7 +10,8 @@ and reports the median σ over the profiles that show a clear step.
 The fit is a grid search over (x₀, σ) with (a, b) solved by least squares at every grid
 point, for all profiles at once. It measures the blur of the image as it is, whatever its
 cause (defocus, aberrations, resampling of the frames), which is what the simulated rig's
-``blur_sigma_px`` must reproduce for simulated and real images to agree (README, Data).
+``blur_sigma_px`` must reproduce for simulated and real images to agree
+(docs/notes/blur.md).
 Green is used because it is sampled twice as densely as Red and Blue; a band whose Green
 response is weak gives a noisier, lower estimate.
 """

@@ -83,7 +83,7 @@ What was done is recorded in ``selection["reduction"]``.
 Speed: fitting costs O(n³), mostly the eigen-decomposition of the n² kernel matrix;
 evaluation processes blocks of points × centres that fit the caches, with reused buffers,
 on a pool of threads (NumPy and SciPy release the GIL); memory is O(points + block).
-Figures in the README (calibration).
+Figures in docs/notes/calibration.md.
 
 Limitations
 -----------

@@ -38,7 +38,11 @@ extensions = [
     "sphinx_gallery.gen_gallery",
     "labkit_api",  # _ext/labkit_api.py: the API pages, one per public module
     "labkit_cli",  # _ext/labkit_cli.py: the command-line reference from build_parser()
+    "myst_parser",  # the guide's pages and the design notes are Markdown
 ]
+source_suffix = {".rst": "restructuredtext", ".md": "markdown"}
+# headings get anchors, so that a page can link to a section of another: [text](page.md#slug)
+myst_heading_anchors = 3
 
 templates_path = ["_templates"]
 # examples/: the gallery's scripts, not pages; sg_execution_times.rst: sphinx-gallery's

@@ -21,8 +21,9 @@ then picks a weight ten times smaller, which leaves those bands noisy (MRAE 0.33
 0.22), so the options refuse the combination.
 
 :data:`BAND_BALANCE` (γ) and :data:`BAND_BALANCE_FLOOR` were chosen on the real
-ColorChecker frames and on the simulated ColorChecker together (figures in the README
-and ``labkit bench reconstruct``). The problem stays quadratic and its FFT solvers exact
+ColorChecker frames and on the simulated ColorChecker together
+(figures in docs/notes/band-balance.md and ``labkit bench reconstruct``). The problem stays
+quadratic and its FFT solvers exact
 without Φ: the factors enter their channel matrices.
 """
 
@@ -39,7 +40,7 @@ from reconstruction.prior_terms import PriorTerm
 BAND_BALANCE = 0.5
 """γ of the EdgeL2 prior with σ > 0 unless given (0: every band smoothed alike, the thesis).
 The plain L2 prior takes it only when asked: on the real frames its DMC weight then falls
-to a quarter and the image gets worse (figures in the README)."""
+to a quarter and the image gets worse (figures in docs/notes/band-balance.md)."""
 
 BAND_BALANCE_FLOOR = 0.05
 """Smallest relative data strength s_b / mean(s) a band's factor is computed from."""

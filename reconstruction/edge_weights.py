@@ -15,7 +15,7 @@ weight; with Φ, conjugate gradients need a few more iterations).
 κ is relative to the level of the raw image (the reconstruction's normalised units: its
 mean is 1), so the weights do not change with exposure. :data:`EDGE_CONTRAST` and
 :data:`EDGE_FLOOR` were chosen on the real ColorChecker frames and on the simulated
-ColorChecker together (figures in the README and ``labkit bench reconstruct``).
+ColorChecker together (figures in docs/notes/edge-guided-prior.md and ``labkit bench reconstruct``).
 """
 
 from __future__ import annotations

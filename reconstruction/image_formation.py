@@ -14,7 +14,7 @@ latent image holds the band images themselves, their colours are the tabulated v
 centre. This is the image formation of the thesis' synthetic raw images (Algorithm 13).
 Interpolating such a table as a continuous response would mix the ratios of neighbouring
 bands, which can differ widely (R/G at 550 and 600 nm on the thesis' real frames; figures
-in the README, "The sensor map as a camera response").
+in docs/notes/real-frames.md, "The sensor map as a camera response").
 
 Either may carry a per-channel scale ``r`` (thesis §6.3, (6.1)): the unknown is then
 ``J = I / r`` and the priors act on J, which equalises how strongly bright and dark bands

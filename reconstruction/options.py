@@ -134,7 +134,7 @@ class ReconstructOptions:
         Sampling weights of Φ (``correction="model"``): Keys' cubic convolution (default,
         beyond the thesis), which shifts without bilinear's blur and so without the
         overshoot it provokes at edges, or bilinear, as the thesis (§3.2.5), at a lower
-        run time (figures in the README).
+        run time (figures in docs/notes/solver.md).
     prior : str
         ``EdgeL2`` (default): the L2 prior weighted per pixel and direction by the raw
         image's own edges (:mod:`reconstruction.edge_weights`), so that pixels a Bayer
@@ -168,7 +168,7 @@ class ReconstructOptions:
         (every band alike, the thesis) otherwise, the only value the other priors, σ = 0
         and a colour latent image take. The plain L2 prior takes it if asked for, but not
         by default: its weight search on the real frames then picks a weight four times
-        smaller and a worse image (README, band balance).
+        smaller and a worse image (docs/notes/band-balance.md).
     weights : str or sequence of float
         ``"auto:dmc"`` (default; the thesis' demosaicing criterion against bilinear
         demosaicing), ``"auto:dmc-menon"`` / ``"auto:dmc-malvar"`` (the same against a
@@ -202,8 +202,8 @@ class ReconstructOptions:
         None (default): with spectral smoothness σ > 0, patches whose initial estimate has
         few values at zero are solved exactly and directly (``direct``: no ADMM, faster
         than ADMM's solve to within 1e-4), the others by ADMM; at σ = 0, ADMM. At σ = 0
-        the exact optimum is the poorer image (README, spectral smoothness), and reaching
-        it with Φ costs several times the ADMM solve.
+        the exact optimum is the poorer image (docs/notes/solver.md, spectral smoothness),
+        and reaching it with Φ costs several times the ADMM solve.
     patch_px : int
         Patch size, px (even). Small patches suit the FFT preconditioner: across a patch
         the dispersion departs less from its mean translation.

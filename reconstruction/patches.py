@@ -30,7 +30,7 @@ Every patch with something to split (non-negativity, L1 terms) starts ADMM from
 :func:`~reconstruction.solvers.admm.initial_estimate` — one FFT solve with Φ as mean
 translations and the priors made quadratic — instead of the thesis' zeros: far fewer
 ADMM iterations, and the first CG solve, the longest, no longer starts from nothing
-(figures in the README, how it works).
+(figures in docs/notes/solver.md).
 
 Each task returns its patch's diagnostics (solver report, what was skipped, time) with
 its image; they are returned as records.

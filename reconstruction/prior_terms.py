@@ -32,7 +32,7 @@ its own initial estimate): the weight the MSE criterion picks on the textured sc
 the ColorChecker's green edge error below Menon's; the DMC on the ColorChecker picks a
 smaller weight whose green edge error is above Menon's; the DMC against Menon's demosaic
 (``auto:dmc-menon``) picks one with a lower spectral error and a green edge error below
-Menon's (figures in the README, colour fringes along edges).
+Menon's (figures in docs/notes/larger-sigma.md, colour fringes along edges).
 
 ``EdgeL2`` is the L2 prior with a weight per pixel and direction taken from the raw image's
 own edges (:mod:`reconstruction.edge_weights`): differences across an edge cost less, so

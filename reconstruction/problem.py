@@ -56,7 +56,7 @@ its green edge error, and costs the textured scene (saturated colours) little. U
 narrow-band light the raw colour is biased: the ColorChecker lit through the rig's 10 nm
 filters gets mostly larger raw-colour errors, and a flat patch lit by a single band moves
 with non-negativity (more so with σ‖∇λ I‖² at every frequency), exactly kept without.
-Figures, with σ = 3e-4 and 3e-3 for comparison, in the README (spectral smoothness)."""
+Figures, with σ = 3e-4 and 3e-3 for comparison, in docs/notes/solver.md (spectral smoothness)."""
 
 
 @dataclass(eq=False)

@@ -22,8 +22,9 @@ Criteria, each evaluated on the solution I* for a weight tuple:
   larger weight than the bilinear DMC on the ColorChecker, with a lower spectral error and
   a green edge error below Menon's own, and on the textured scene it escapes the DMC's
   failure mode at tiny weights (§3.6), with far lower spectral and colour errors (figures
-  in the README, colour fringes along edges). Like Menon's demosaic itself, it relies on the
-  colour channels' correlation, which narrow-band light breaks: the thesis keeps bilinear
+  in docs/notes/larger-sigma.md, colour fringes along edges). Like Menon's demosaic
+  itself, it relies on the colour channels' correlation, which narrow-band light breaks: the thesis
+  keeps bilinear
   for that reason, and so does the default.
 
 Algorithm 3 searches a log grid per weight: four log-spaced values from a_j to b_j, the
@@ -44,14 +45,15 @@ Algorithm 3's two per round. So does a single weight whose solves start from the
 initial estimate (L1-type and VTV terms, below): each weight's loose solve is then a
 function of that weight alone, not of the search's order, and Brent's local search finds
 the value Algorithm 3's grid finds, or one a little above it, in fewer than half the
-solves (figures in the README, weight selection). Brent's method is local, so a walk
+solves (figures in docs/notes/solver.md, weight selection). Brent's method is local, so a walk
 first brackets the minimum nearest :data:`SCAN_START` (:func:`_brent`): over the whole
 range [ε, 1e10] it could stop on the plateau of tiny weights, where the data alone fix the
-image and the criterion barely changes (figures in the README, weight selection). At σ = 0 the
-problem's optimum is not the image ADMM's early stop returns, and the criterion scored on
+image and the criterion barely changes (figures in docs/notes/solver.md, weight
+selection). At σ = 0 the problem's optimum is not the image ADMM's early stop returns, and the
+criterion scored on
 either (the optimum, or the early stop at the reconstruction's own tolerance) drifts to
 tiny weights (the DMC's failure mode, §3.6), so the thesis' loose search stays there
-(figures in the README, weight selection). So it does for the MDC, whose ideal point needs
+(figures in docs/notes/solver.md, weight selection). So it does for the MDC, whose ideal point needs
 solves at w = ε, whose exact optimum only the ridge fixes.
 """
 
@@ -148,7 +150,7 @@ class _Evaluator:
         # DMC then picks sensible weights for VTV and for L1 with σ instead of tiny ones,
         # and for L1 without σ a slightly better image. L2 priors keep the warm start: with
         # their own starts the DMC picked a far smaller L2 weight and a worse image
-        # (figures in the README, colour fringes along edges).
+        # (figures in docs/notes/larger-sigma.md, colour fringes along edges).
         # An exact solve's result does not depend on its start, so the order of the search
         # cannot move it; it starts from the nearest weight's optimum, which the active-set
         # rounds reach from in fewer steps than from the initial estimate (docs, speed).
@@ -352,7 +354,7 @@ def _brent(
     step. Brent's method alone over [ε, 1e10] is as local, but where it lands depends on
     its first golden sections: on the plateau of tiny weights, or in a second minimum at
     large weights, where the image is about as blurred as the bilinear reference the DMC
-    scores against (README, weight selection).
+    scores against (docs/notes/solver.md, weight selection).
     """
     values: dict[float, float] = {}
 

@@ -88,7 +88,7 @@ def test_every_part_of_the_code_has_a_layer(repo_root: Path) -> None:
     missing = sorted(parts - named)
     assert not missing, (
         f"{missing} belong to no layer of pyproject.toml's import contract; add each where it "
-        "belongs (README, Architecture)"
+        "belongs (docs/architecture.md)"
     )
     unknown = sorted(named - parts)
     assert not unknown, f"the layers name {unknown}, which are not in the code"

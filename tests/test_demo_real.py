@@ -24,7 +24,7 @@ def real_out(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_real_demo_reproduces_the_measured_figures(real_out: Path) -> None:
-    """Figures measured on the vendored frames (README, 'labkit demo --real'): fitted
+    """Figures measured on the vendored frames (docs/notes/real-frames.md): fitted
     exposure factors within 8.6 % of the exposure-time ratios; 400 nm dropped (27 % in
     band), 700 nm kept at 682.6 nm; multispectral MRAE 0.215, RMSE 0.067 (the thesis,
     at full resolution: 0.194); the default reconstruction 0.198 and the §6.3 variant

@@ -25,7 +25,7 @@ and noisy high frequencies as much as the scene's low ones. The estimator theref
    plus the first estimate and the remaining shift is measured again, which removes
    most of the remaining pull towards whole pixels.
 
-Each step's effect on a planted shift, and the run time, are in the README (calibration).
+Each step's effect on a planted shift, and the run time, are in docs/notes/calibration.md.
 
 Patches are rejected when their registration error exceeds `max_error` (content that
 differs between the images, e.g. colours whose contrast changes between bands), when

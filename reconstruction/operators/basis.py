@@ -31,7 +31,7 @@ spectrum ``S(s_j) = Σ_i K(s_j − v_i) I_i`` (3.9), i.e. ``B_ji = K(s_j − v_i
   vector gives that constant back up to the Gaussian's Poisson ripple
   ``±2 exp(−2π²σ²/Δv²) ≈ ±4.3 %`` (period Δv). This rescaling does not change the set of
   representable spectra, but the ripple limits how well B reproduces smooth spectra
-  (figures in the README, how it works). ``kernel="sinc"`` uses
+  (figures in docs/notes/solver.md). ``kernel="sinc"`` uses
   ``sinc((s − v)/Δv)`` instead (ideal bandlimited interpolation; may go negative, which
   is why the thesis prefers the Gaussian).
 * **B close to identity.** With ``sample_nm == centres_nm`` the Gaussian B is the

@@ -5,14 +5,14 @@ constrained quadratic programme ``min ½ xᵀKx − bᵀx, x ≥ 0`` with
 ``K = 2AᵀA + Σ_j 2w_j D_jᵀD_j + 2εI`` and ``b = 2Aᵀy``. Its KKT conditions are
 ``Kx − b = μ, x ≥ 0, μ ≥ 0, xᵀμ = 0``. ADMM's residual test stops while directions curved
 only by a small prior are still far off (well above the optimum at the small weights the
-DMC picks; figures in the README, how it works), so :func:`polish` finishes its result
+DMC picks; figures in docs/notes/solver.md), so :func:`polish` finishes its result
 with Bertsekas' projected Newton method: the active set S holds the values at zero whose
 gradient pushes outwards; the problem with ``x_S = 0`` is solved on the free values, and
 the step towards that solution is projected onto x ≥ 0 and shortened until the objective
 falls enough (Armijo). It stops when the KKT residual is below :data:`KKT_TOLERANCE`.
 The rounds locate S with a loose solve tolerance and switch to a tight one once S repeats
 (or a loose solve has nothing left to do).
-Warm-started from ADMM, a few rounds suffice (figures in the README, how it works).
+Warm-started from ADMM, a few rounds suffice (figures in docs/notes/solver.md).
 
 Each round solves ``K_FF x_F = b_F`` on the free set F by conjugate gradients
 preconditioned with the FFT solver K̃ (exact without Φ; Φ by mean translations) restricted
@@ -48,7 +48,7 @@ from reconstruction.solvers.fourier import FourierSolver
 
 MAX_ACTIVE = 2000
 """Largest working set of :func:`solve_periodic` (dense k × k matrix: 32 MB, one Cholesky
-factorisation per round; its time is in the README, how it works)."""
+factorisation per round; its time is in docs/notes/solver.md)."""
 
 MAX_PINNED = 500
 """Most values held at zero that :func:`polish`'s preconditioner corrects for exactly (the
@@ -80,7 +80,7 @@ ADD_BATCH = 300
 
 MAX_PERIODIC_ROUNDS = 100
 """Rounds of :func:`solve_periodic` before it gives up: above the counts observed on 64²
-and 128² patches over a wide range of weights (figures in the README, how it works)."""
+and 128² patches over a wide range of weights (figures in docs/notes/solver.md)."""
 
 
 @dataclass
@@ -209,7 +209,7 @@ def polish(
         and a second FFT solve per CG step), or only mask it. Default: correct where K̃
         is K itself (no Φ, so CG takes one or two steps); with Φ, K̃ is an
         approximation anyway and the correction costs more than the CG steps it saves
-        (figures in the README, how it works).
+        (figures in docs/notes/solver.md).
     kkt_tolerance : float
         The KKT residual at which it stops, relative to ‖2Aᵀy‖ (:func:`_satisfies_kkt`).
 

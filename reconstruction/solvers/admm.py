@@ -54,13 +54,13 @@ DEFAULT_RTOL = 1e-4
 smallest non-negative metamer, a poorer spectrum than ADMM's early stop) and ADMM
 approaches it slowly, so this solve promises no distance to it: every extra iteration moves
 the image towards that poorer spectrum (``exact_nonneg`` reaches the optimum; figures in
-the README, spectral smoothness)."""
+the docs/notes/solver.md, spectral smoothness)."""
 
 SMOOTH_RTOL = 1e-5
 """ε_rel with spectral smoothness (σ > 0, the default of
 :func:`~reconstruction.reconstruct.reconstruct`): the optimum is then well defined, and
 the default solve (with :data:`STALL_WINDOW`) comes within 1e-4 of it (relative objective;
-measured by ``labkit bench solver`` and the README)."""
+measured by ``labkit bench solver`` and docs/notes/solver.md)."""
 
 
 def default_rtol(smoothness: float = 0.0) -> float:
@@ -88,8 +88,9 @@ STALL_WINDOW = 5
 from the first iteration that passes it on, the objective is recorded, and ADMM stops when
 the test passes and the last (up to) this many values lie within :data:`STALL_FACTOR` ·
 ε_rel of the newest. Small residuals alone let the iterate stop while still drifting along
-a flat valley of the objective (README, reproducible solves). Not at σ = 0, whose early
-stop is kept on purpose (:data:`DEFAULT_RTOL`), nor in solves with ``settle=False``."""
+a flat valley of the objective (docs/notes/solver.md, reproducible solves). Not at
+σ = 0, whose early stop is kept on purpose (:data:`DEFAULT_RTOL`), nor in solves with
+``settle=False``."""
 STALL_FACTOR = 0.5
 DIRECT_MAX_ZEROS = 600
 """Largest number of values at or below zero in the unconstrained optimum for which a
@@ -338,7 +339,7 @@ def initial_estimate(problem: Problem, *, solver: FourierSolver | None = None) -
     right-hand side alike: were they to disagree, the directions only the ridge ε holds
     would amplify the mismatch. Clipped at zero for a non-negative problem. ADMM
     starts here unless given x0 (the thesis starts from zeros), which saves iterations of
-    ADMM and of each CG solve (README).
+    ADMM and of each CG solve (docs/notes/solver.md).
 
     `solver` is an FFT solver of that matrix to use instead of building one: for L2-type
     priors, the split-free quadratic step's (:func:`quadratic_system`).
@@ -460,7 +461,7 @@ def solve(
     else:
         x = np.zeros(shape)
     # on textured patches ADMM reaches the optimum in far fewer iterations with ρ near the
-    # data curvature than with ρ ten times larger (figures in the README, how it works)
+    # data curvature than with ρ ten times larger (figures in docs/notes/solver.md)
     rho0 = float(penalty) if penalty is not None else problem.data_curvature
 
     splits: list[_Split] = []

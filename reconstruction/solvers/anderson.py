@@ -19,7 +19,7 @@ class AndersonAcceleration:
     goes on from the plain step of the point it was extrapolated from, and the memory
     restarts. (Keeping it instead, where the residual differences had become nearly
     collinear near convergence, threw the objective up by orders of magnitude and cost
-    ADMM many iterations to recover; figures in the README, how it works.)
+    ADMM many iterations to recover; figures in docs/notes/solver.md.)
 
     Parameters
     ----------

@@ -13,7 +13,7 @@ The image being real, its spectrum and K are conjugate-symmetric, so only one qu
 of each conjugate pair is inverted and applied (:func:`conjugate_quadruples`): half the
 inversion time and memory, and fewer products per solve; the FFTs are real-to-complex,
 gathering the kept quadruples from half the spectrum and filling half the spectrum back
-from them (:func:`_half_spectrum_maps`; figures in the README).
+from them (:func:`_half_spectrum_maps`; figures in docs/notes/solver.md).
 
 Derivation. A channel mask is ``m_c(y, x) = Σ_s a_{c,s} exp(iπ(s_y y + s_x x))`` with
 ``a_{c,s} = ¼ Σ_{phases (p, q) of c} (−1)^{s_y p + s_x q}``; multiplying by

@@ -72,7 +72,8 @@ def test_the_simulators_blur_is_measured_in_order_and_near_its_value() -> None:
 
 def test_the_simulated_rig_is_as_sharp_as_the_real_frames(tmp_path) -> None:
     """The default rig's blur was chosen so that its 550 nm ColorChecker measures like the
-    real frames' 550 nm HDR image (README, Data): measured 0.40 px real, 0.39 px simulated."""
+    real frames' 550 nm HDR image (docs/notes/blur.md): measured 0.40 px
+    real, 0.39 px simulated."""
     from calibration import load_filtered_hdr
     from labkit.demo_real import prepare_real_inputs
 
