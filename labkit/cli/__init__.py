@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import errno
+import importlib
 import signal
 import sys
 import threading
@@ -26,58 +27,39 @@ from pathlib import Path
 from typing import Any
 
 import labkit
-from labkit.cli import (
-    bench,
-    calibrate,
-    capture,
-    correct,
-    demo,
-    devices,
-    dispersion,
-    evaluate,
-    export,
-    hdr,
-    reconstruct,
-    rig,
-    session,
-    sim,
-    synthesize,
-)
+from labkit.cli._commands import COMMANDS, Commands
 from labkit.errors import LabkitError
 
-_MODULES = (
-    rig,
-    devices,
-    capture,
-    session,
-    hdr,
-    calibrate,
-    synthesize,
-    dispersion,
-    correct,
-    reconstruct,
-    evaluate,
-    export,
-    sim,
-    demo,
-    bench,
+_DESCRIPTION = (
+    "Spectral camera lab toolkit: capture, HDR merging, chromatic-aberration "
+    "calibration and spectral reconstruction (Llanos, 2019), on real or simulated rigs."
 )
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with every subcommand."""
-    parser = argparse.ArgumentParser(
-        prog="labkit",
-        description=(
-            "Spectral camera lab toolkit: capture, HDR merging, chromatic-aberration "
-            "calibration and spectral reconstruction (Llanos, 2019), on real or simulated rigs."
-        ),
-    )
+    return _parser(set(COMMANDS))
+
+
+def _parser(full: set[str]) -> argparse.ArgumentParser:
+    """The parser with the commands in `full` registered by their modules; every other
+    command is listed with its summary but its module is not imported."""
+    parser = argparse.ArgumentParser(prog="labkit", description=_DESCRIPTION)
     parser.add_argument("--version", action="version", version=f"labkit {labkit.__version__}")
-    commands = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for module in _MODULES:
-        module.register(commands)
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
+    commands = Commands(subparsers)
+    for name, command in COMMANDS.items():
+        if name in full:
+            importlib.import_module(command.module).register(commands)
+        else:
+            commands.add_parser(name, add_help=False)
     return parser
+
+
+def _command_in(argv: list[str]) -> str | None:
+    """The command an argument list runs: its first word, when that names a command."""
+    first = next((word for word in argv if word == "--" or not word.startswith("-")), None)
+    return first if first in COMMANDS else None
 
 
 EXPECTED = 2
@@ -88,7 +70,9 @@ UNEXPECTED = 3
 
 def main(argv: list[str] | None = None) -> int:
     """Run the ``labkit`` command line; return the exit status."""
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    command = _command_in(argv)
+    parser = _parser({command} if command else set())
     try:
         args = parser.parse_args(argv)
     except SystemExit as exit:  # a bad option (argparse printed it), --help, --version

@@ -5,16 +5,16 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from labkit.cli._commands import Commands
 from labkit.cli._options import positive_int
 
 
-def register(commands: argparse._SubParsersAction) -> None:
+def register(commands: Commands) -> None:
     """Add ``labkit bench``."""
     from labkit.bench import BENCHMARKS
 
     parser = commands.add_parser(
         "bench",
-        help="measure speed and memory (JSON + Markdown report)",
         description="Run benchmarks and write DIR/bench.json and DIR/bench.md with times "
         "(median of repeats), peak memory, errors, the issue targets they are held to, and "
         "plots (time against error, time against image size) next to them.",

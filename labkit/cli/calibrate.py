@@ -15,14 +15,14 @@ import argparse
 import math
 from pathlib import Path
 
+from labkit.cli._commands import Commands
 from labkit.cli._options import fraction, non_negative_int
 
 
-def register(commands: argparse._SubParsersAction) -> None:
+def register(commands: Commands) -> None:
     """Add ``labkit calibrate …``."""
     parser = commands.add_parser(
         "calibrate",
-        help="calibrate the camera and lens from HDR images",
         description="Calibrations computed from the HDR images written by `labkit hdr`.",
     )
     actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)

@@ -9,14 +9,14 @@ import threading
 from pathlib import Path
 from typing import Any
 
+from labkit.cli._commands import Commands
 from labkit.rig import default_rig_path, load_rig
 
 
-def register(commands: argparse._SubParsersAction) -> None:
+def register(commands: Commands) -> None:
     """Add ``labkit capture``."""
     parser = commands.add_parser(
         "capture",
-        help="run the exposure-bracketing + dark-frame protocol into a session folder",
         description="Run the rig's capture plan (thesis Algorithm 10): for every scene, the "
         "open slot and each filter, grab the replicates at every exposure time (or at "
         "auto-bracketed ones), then dark frames for every exposure used. Frames are stored "

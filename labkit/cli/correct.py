@@ -11,14 +11,14 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from labkit.cli._commands import Commands
 from labkit.cli._options import add_cfa_option, add_extrapolation_option, model_domain
 
 
-def register(commands: argparse._SubParsersAction) -> None:
+def register(commands: Commands) -> None:
     """Add ``labkit correct …``."""
     parser = commands.add_parser(
         "correct",
-        help="correct images for lateral chromatic aberration",
         description="Corrections that use a calibrated dispersion model.",
     )
     actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)

@@ -5,12 +5,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from labkit.cli._commands import Commands
 
-def register(commands: argparse._SubParsersAction) -> None:
+
+def register(commands: Commands) -> None:
     """Add ``labkit demo``."""
     parser = commands.add_parser(
         "demo",
-        help="run the main job on the simulated rig (or --real frames) and write a report",
         description="The whole job on the simulated rig: capture (auto-bracketing, dark "
         "frames) → HDR → dispersion calibration → reconstruction of the ColorChecker and "
         "textured scenes → evaluation against the simulator's truth and the baselines → "

@@ -5,12 +5,13 @@ from __future__ import annotations
 import argparse
 import os
 
+from labkit.cli._commands import Commands
 
-def register(commands: argparse._SubParsersAction) -> None:
+
+def register(commands: Commands) -> None:
     """Add ``labkit devices``."""
     parser = commands.add_parser(
         "devices",
-        help="list cameras (aravis, genicam) and serial ports (with --probe: which slider)",
         description="List GigE Vision cameras found by Aravis, GenTL cameras found through each "
         "--cti producer (default: the GENICAM_GENTL64_PATH folders), and serial ports. "
         "--probe asks each port which slider protocol answers (it sends bytes to the ports).",

@@ -8,14 +8,14 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from labkit.cli._commands import Commands
 from labkit.cli._options import add_extrapolation_option, finite_float
 
 
-def register(commands: argparse._SubParsersAction) -> None:
+def register(commands: Commands) -> None:
     """Add ``labkit dispersion …``."""
     parser = commands.add_parser(
         "dispersion",
-        help="inspect dispersion models",
         description="Inspect dispersion models written by `labkit calibrate dispersion`.",
     )
     actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)

@@ -7,6 +7,7 @@ import json
 import sys
 from pathlib import Path
 
+from labkit.cli._commands import Commands
 from labkit.cli._options import add_cfa_option, add_extrapolation_option, model_domain
 
 DESCRIPTION = """\
@@ -31,13 +32,12 @@ display scale) and DIR/<method>.png. Errors are fractions of the raw image's mea
 """
 
 
-def register(commands: argparse._SubParsersAction) -> None:
+def register(commands: Commands) -> None:
     """Add ``labkit evaluate``."""
     from reconstruction.baselines import BASELINES
 
     parser = commands.add_parser(
         "evaluate",
-        help="score baselines and reconstructions of one raw image (residual aberration, errors)",
         description=DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

@@ -12,6 +12,8 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from labkit.cli._commands import Commands
+
 if TYPE_CHECKING:
     from labkit.io import SpectralImage
 
@@ -19,11 +21,10 @@ FORMATS = {"envi": ".hdr", "exr": ".exr"}
 """Export formats and the suffix of the file that ``--out`` names."""
 
 
-def register(commands: argparse._SubParsersAction) -> None:
+def register(commands: Commands) -> None:
     """Add ``labkit export``."""
     parser = commands.add_parser(
         "export",
-        help="convert a spectral image between spectral EXR and ENVI",
         description="Convert a spectral image. `--to envi` writes OUT.hdr (ENVI header: "
         "wavelength, wavelength units = Nanometers, band names, the values' units) and "
         "OUT.img (float32, band-sequential, little-endian) from a spectral EXR. `--to exr` "

@@ -6,12 +6,13 @@ import argparse
 import sys
 from pathlib import Path
 
+from labkit.cli._commands import Commands
 
-def register(commands: argparse._SubParsersAction) -> None:
+
+def register(commands: Commands) -> None:
     """Add ``labkit hdr``."""
     parser = commands.add_parser(
         "hdr",
-        help="merge exposure brackets into HDR raw mosaics (thesis Algorithm 11)",
         description="For every scene × illumination of one or more capture sessions: average the "
         "replicates, subtract the mean dark frame of each exposure, fit the scaling factor "
         "between consecutive exposures (first principal component of pixels within 2–95 %% "

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from labkit.cli._commands import Commands
 from labkit.cli._options import add_cfa_option
 from labkit.errors import ConfigError, DataError
 from reconstruction.option_table import NONE_TEXT, OPTION_TABLE, OptionSpec, flags
@@ -35,11 +36,10 @@ CLI_NAMES = flags(
 CLI_CRITERIA = ("dmc", "dmc-menon", "dmc-malvar", "mdc")
 
 
-def register(commands: argparse._SubParsersAction) -> None:
+def register(commands: Commands) -> None:
     """Add ``labkit reconstruct``."""
     parser = commands.add_parser(
         "reconstruct",
-        help="spectral image from one Bayer raw image, free of lateral chromatic aberration",
         description="Reconstruct a spectral image straight from a raw Bayer mosaic by solving "
         "thesis problem (3.1), A = M·Ω·Φ·B with a regularising prior, patch by patch on Dask. "
         "RAW is a raw EXR (from `labkit hdr`, or from other software: channel 'raw' or the "

@@ -5,13 +5,14 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from labkit.cli._commands import Commands
 from labkit.protocol.plan import build_plan
 from labkit.rig import Rig, load_rig
 
 
-def register(commands: argparse._SubParsersAction) -> None:
+def register(commands: Commands) -> None:
     """Add ``labkit rig …``."""
-    parser = commands.add_parser("rig", help="inspect rig description files")
+    parser = commands.add_parser("rig")
     actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
     check = actions.add_parser(
         "check",

@@ -6,13 +6,14 @@ import argparse
 from collections import Counter
 from pathlib import Path
 
+from labkit.cli._commands import Commands
 from labkit.errors import ConfigError
 from labkit.rig import default_rig_path, load_rig
 
 
-def register(commands: argparse._SubParsersAction) -> None:
+def register(commands: Commands) -> None:
     """Add ``labkit session …``."""
-    parser = commands.add_parser("session", help="inspect or import capture sessions")
+    parser = commands.add_parser("session")
     actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
     show = actions.add_parser(
         "show",

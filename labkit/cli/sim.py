@@ -7,6 +7,7 @@ import math
 from pathlib import Path
 
 from labkit.cfa import pixel_format_for
+from labkit.cli._commands import Commands
 from labkit.cli._options import non_negative_int
 from labkit.errors import ConfigError
 from labkit.io import raw_preview, write_png, write_raw_tiff
@@ -15,9 +16,9 @@ from labkit.sim.camera import SimCamera
 from labkit.sim.world import SimulatedRig
 
 
-def register(commands: argparse._SubParsersAction) -> None:
+def register(commands: Commands) -> None:
     """Add ``labkit sim …``."""
-    parser = commands.add_parser("sim", help="the simulated rig")
+    parser = commands.add_parser("sim")
     actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
     render = actions.add_parser(
         "render",

@@ -5,12 +5,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from labkit.cli._commands import Commands
 
-def register(commands: argparse._SubParsersAction) -> None:
+
+def register(commands: Commands) -> None:
     """Add ``labkit synthesize``."""
     parser = commands.add_parser(
         "synthesize",
-        help="multispectral + synthetic RGB/raw images from filtered HDR images (Algorithm 13)",
         description="For each scene: interpolate the Green channel of every filtered-light "
         "HDR image (divided by its exposure) into a multispectral image, collapse it to RGB "
         "with the calibrated R/G and B/G ratios, and sample that with the CFA. Writes "
