@@ -444,7 +444,7 @@ def _synthesize(images: list, sensor: dict[str, Any], scene: str, out: Path) -> 
     cube = synthesis.multispectral
     write_png(
         out / "synthesis" / f"{scene}-multispectral.png",
-        spectral_preview(cube.cube, cube.wavelengths_nm),
+        spectral_preview(cube.cube, cube.wavelengths_nm).image,
     )
     return synthesis
 

@@ -145,9 +145,11 @@ def save_reconstruction(
             names["spectral"] = "spectral.exr"
             image = result.spectral_image(provenance=provenance)
             write_spectral_exr(stage / names["spectral"], image)
-            preview = spectral_preview(image.cube, image.wavelengths_nm)
+            shown = spectral_preview(image.cube, image.wavelengths_nm)
+            preview, preview_note = shown.image, shown.as_dict()
         else:
             preview = to_display(np.maximum(result.raw_colour, 0), max_side=None)
+            preview_note = {"white_balance": "none", "shows": "raw camera colour"}
         names["raw_colour"] = "raw_colour.exr"
         write_rgb_exr(
             stage / names["raw_colour"], result.raw_colour, {**header, "units": "raw units"}
@@ -155,7 +157,13 @@ def save_reconstruction(
         names["preview"] = "preview.png"
         write_png(stage / names["preview"], preview)
         names["log"] = "log.json"
-        document = {**header, **(log or {}), "outputs": dict(names), **result.log}
+        document = {
+            **header,
+            **(log or {}),
+            "outputs": dict(names),
+            "preview": preview_note,
+            **result.log,
+        }
         text = json.dumps(to_plain(document), indent=2, ensure_ascii=False) + "\n"
         write_text_atomic(stage / names["log"], text)
     paths = {name: out / file for name, file in names.items()}

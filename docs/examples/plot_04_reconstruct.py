@@ -75,7 +75,7 @@ print("patches using Φ:", patches["phi_used"], "| flat:", patches["flat"])
 figure, axes = plt.subplots(1, 5, figsize=(14, 2.8))
 axes[0].imshow(image.raw, cmap="gray")
 axes[0].set_title(f"raw mosaic ({image.cfa})")
-axes[1].imshow(spectral_preview(result.spectral, result.wavelengths_nm))
+axes[1].imshow(spectral_preview(result.spectral, result.wavelengths_nm).image)
 axes[1].set_title("reconstruction, sRGB")
 for axis, index in zip(axes[2:], [1, len(result.wavelengths_nm) // 2, -2], strict=True):
     axis.imshow(result.spectral[..., index], cmap="gray")

@@ -75,7 +75,7 @@ axes[0].imshow(real.synthesis.raw.raw, cmap="gray")
 axes[0].set_title("synthetic raw image")
 axes[1].imshow(display_on_one_scale({"rgb": real.synthesis.rgb})["rgb"])
 axes[1].set_title("synthetic colour image (Alg. 13)")
-axes[2].imshow(spectral_preview(result.spectral, result.wavelengths_nm))
+axes[2].imshow(spectral_preview(result.spectral, result.wavelengths_nm).image)
 axes[2].set_title("reconstruction, sRGB")
 for axis in axes:
     axis.set_axis_off()

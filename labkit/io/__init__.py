@@ -15,6 +15,7 @@ from labkit.io.mosaic import MOSAIC_SUFFIXES, read_mosaic
 from labkit.io.plain import to_plain
 from labkit.io.plane import read_plane
 from labkit.io.preview import (
+    SpectralPreview,
     demosaic_bilinear,
     display_on_one_scale,
     raw_preview,
@@ -30,6 +31,7 @@ __all__ = [
     "MOSAIC_SUFFIXES",
     "RawImage",
     "SpectralImage",
+    "SpectralPreview",
     "atomic_path",
     "atomic_write",
     "demosaic_bilinear",

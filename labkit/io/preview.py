@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -98,20 +99,62 @@ def display_on_one_scale(
     }
 
 
-def spectral_preview(
-    spectral: np.ndarray, wavelengths_nm: np.ndarray, *, percentile: float = 99.5
-) -> np.ndarray:
-    """sRGB uint8 (rows, cols, 3) of a spectral image (CIE 1931 2° → sRGB, colour-science).
+@dataclass(frozen=True)
+class SpectralPreview:
+    """A display image of a spectral image and how its colours were balanced.
 
-    The `percentile` of luminance Y is shown as white.
+    Attributes
+    ----------
+    image : ndarray (rows, cols, 3) uint8
+        sRGB.
+    white_balance : str
+        ``"grey-world"`` (the image's mean colour shown as neutral, CAT02 adaptation to
+        D65) or ``"none"`` (the colours relative to the light the spectra are relative to).
+    scene_white_xy : tuple of float or None
+        CIE 1931 chromaticity taken as white (grey-world only).
     """
-    from labkit.spectra.conversion import spectral_to_xyz, xyz_to_srgb
+
+    image: np.ndarray
+    white_balance: str
+    scene_white_xy: tuple[float, float] | None = None
+
+    def as_dict(self) -> dict:
+        """For logs: the method and the white."""
+        return {"white_balance": self.white_balance, "scene_white_xy": self.scene_white_xy}
+
+
+def spectral_preview(
+    spectral: np.ndarray,
+    wavelengths_nm: np.ndarray,
+    *,
+    percentile: float = 99.5,
+    white_balance: bool = True,
+) -> SpectralPreview:
+    """sRGB preview of a spectral image (CIE 1931 2° → sRGB, colour-science).
+
+    With `white_balance` the image's mean colour is taken as the scene's white
+    (grey-world) and adapted to D65 (von Kries, CAT02), so the light's own colour (a
+    projector lamp's green and yellow lines) does not tint the preview. The `percentile`
+    of luminance Y is shown as white.
+    """
+    from labkit.spectra.conversion import (
+        adapt_to_d65,
+        grey_world_white,
+        spectral_to_xyz,
+        xyz_to_srgb,
+    )
 
     xyz = spectral_to_xyz(spectral, np.asarray(wavelengths_nm, dtype=np.float64))
-    white = float(np.percentile(xyz[..., 1], percentile))
-    if not np.isfinite(white) or white <= 0:
-        white = 1.0
-    return (xyz_to_srgb(xyz / white) * 255 + 0.5).astype(np.uint8)
+    white_xy = None
+    if white_balance:
+        white = grey_world_white(xyz)
+        xyz = adapt_to_d65(xyz, white)
+        white_xy = (float(white[0] / white.sum()), float(white[1] / white.sum()))
+    scale = float(np.percentile(xyz[..., 1], percentile))
+    if not np.isfinite(scale) or scale <= 0:
+        scale = 1.0
+    image = (xyz_to_srgb(xyz / scale) * 255 + 0.5).astype(np.uint8)
+    return SpectralPreview(image, "grey-world" if white_balance else "none", white_xy)
 
 
 def write_png(path: str | Path, image: np.ndarray) -> None:

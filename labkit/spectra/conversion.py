@@ -71,6 +71,36 @@ def xyz_to_srgb(xyz: np.ndarray) -> np.ndarray:
     return np.clip(np.nan_to_num(rgb, nan=0.0), 0.0, 1.0)
 
 
+#: CIE 1931 chromaticity of D65, the white of sRGB.
+D65_XY = (0.3127, 0.3290)
+
+
+def grey_world_white(xyz: np.ndarray) -> np.ndarray:
+    """The scene's white by the grey-world assumption: the mean XYZ of the image's finite
+    pixels with positive luminance, scaled to Y = 1 (the D65 white when there are none)."""
+    pixels = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    pixels = pixels[np.all(np.isfinite(pixels), axis=1) & (pixels[:, 1] > 0)]
+    mean = pixels.mean(axis=0) if len(pixels) else None
+    if mean is None or np.any(mean <= 0):
+        x, y = D65_XY
+        return np.array([x / y, 1.0, (1.0 - x - y) / y])
+    return mean / mean[1]
+
+
+def adapt_to_d65(xyz: np.ndarray, white: np.ndarray) -> np.ndarray:
+    """Von Kries chromatic adaptation (CAT02 cone space) of `xyz` from the scene white
+    `white` to D65: a surface of the white's colour becomes neutral in sRGB."""
+    import colour
+
+    x, y = D65_XY
+    target = np.array([x / y, 1.0, (1.0 - x - y) / y])
+    source = np.asarray(white, dtype=np.float64)
+    matrix = colour.adaptation.matrix_chromatic_adaptation_VonKries(
+        source / source[1], target, transform="CAT02"
+    )
+    return np.asarray(xyz, dtype=np.float64) @ np.asarray(matrix).T
+
+
 def spectral_to_srgb(image: np.ndarray, wavelengths: np.ndarray) -> np.ndarray:
     """Display sRGB (…, 3) in [0, 1] of a spectral image relative to its light source."""
     return xyz_to_srgb(spectral_to_xyz(image, wavelengths))

@@ -150,3 +150,23 @@ def test_a_folder_where_a_file_goes_is_called_a_folder(tmp_path):
         read_envi(tmp_path / "d.hdr")
     with pytest.raises(ConfigError, match=r"dispersion model .*d\.exr is a folder"):
         load_dispersion_model(tmp_path / "d.exr")
+
+
+def test_spectral_preview_shows_grey_under_a_coloured_light_as_grey() -> None:
+    """Grey patches (reflectances 0.2, 0.5, 0.9) under a green-heavy light: grey-world
+    adaptation shows them neutral; without it the light's green tints them."""
+    from labkit.io import spectral_preview
+
+    wavelengths = np.arange(400.0, 701.0, 10.0)
+    light = 1.0 + 2.0 * np.exp(-0.5 * ((wavelengths - 545.0) / 25.0) ** 2)  # a lamp's green line
+    reflectance = np.repeat([0.2, 0.5, 0.9], 8)[None, :, None]
+    cube = np.broadcast_to(reflectance * light, (6, 24, wavelengths.size))
+    balanced = spectral_preview(cube, wavelengths)
+    rgb = balanced.image.reshape(-1, 3).astype(int)
+    assert np.abs(rgb - rgb.mean(axis=1, keepdims=True)).max() <= 2
+    assert balanced.white_balance == "grey-world"
+    _, y = balanced.scene_white_xy
+    assert y > 0.36  # the light's chromaticity, greener than D65 (0.3127, 0.3290)
+    tinted = spectral_preview(cube, wavelengths, white_balance=False).image.reshape(-1, 3)
+    assert np.all(tinted[:, 1].astype(int) - tinted[:, 0] > 10)
+    assert np.all(tinted[:, 1].astype(int) - tinted[:, 2] > 10)

@@ -38,6 +38,10 @@ def test_spectral_result_round_trips(tmp_path: Path) -> None:
                                       "values": [0.01]}  # fmt: skip
     log = json.loads(paths["log"].read_text())
     assert log["command"] == "test" and log["outputs"]["preview"] == "preview.png"
+    assert (
+        log["preview"]["white_balance"] == "grey-world"
+        and len(log["preview"]["scene_white_xy"]) == 2
+    )
     assert log["patches"]["count"] == result.log["patches"]["count"]
 
 
