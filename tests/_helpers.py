@@ -73,6 +73,13 @@ def sensor_levels(model):
     return SensorLevels(model.saturation_dn(), model.black_level_dn)
 
 
+#: The thesis' fixed exposure lists (§4.2.2), s; the simulated rig file auto-brackets.
+THESIS_EXPOSURES = {
+    "unfiltered": [0.003, 0.006, 0.012],
+    "filtered": [0.025, 0.05, 0.1, 0.25, 0.5, 2.0, 3.916],
+}
+
+
 def write_rig(folder: Path, base: Path, **changes: object) -> Path:
     """Write a variant of the rig file `base` into `folder`; `changes` maps dotted keys to values.
 

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from _helpers import QUICK_PLAN, write_rig
+from _helpers import QUICK_PLAN, THESIS_EXPOSURES, write_rig
 
 from labkit.rig import load_rig
 from labkit.sim import SimulatedRig
@@ -65,6 +65,13 @@ def small_rig_file(tmp_path_factory: pytest.TempPathFactory, sim_rig_path: Path)
 def quick_rig_file(tmp_path: Path, sim_rig_path: Path) -> Path:
     """The simulated rig with a 64 × 96 sensor and a 38-frame plan (see QUICK_PLAN)."""
     return write_rig(tmp_path, sim_rig_path, **QUICK_PLAN)
+
+
+@pytest.fixture(scope="session")
+def thesis_rig_path(tmp_path_factory: pytest.TempPathFactory, sim_rig_path: Path) -> Path:
+    """The simulated rig with the thesis' fixed exposure lists instead of auto-bracketing."""
+    folder = tmp_path_factory.mktemp("thesis-rig")
+    return write_rig(folder, sim_rig_path, **{"plan.exposures_s": THESIS_EXPOSURES})
 
 
 @pytest.fixture

@@ -95,3 +95,12 @@ def test_the_readme_walkthrough_runs_as_written(
         assert (tmp_path / "recon" / name).is_file(), name
         assert (tmp_path / "recon-python" / name).is_file(), name
     assert (tmp_path / "lens.yaml").is_file() and (tmp_path / "hdr" / "hdr.yaml").is_file()
+    # a first run looks right: the bundled plan's merge prints one line per image, no warning
+    again = subprocess.run(
+        ["labkit", "hdr", "day1", "--out", "hdr-again", "--no-progress"],
+        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert again.returncode == 0, again.stderr
+    assert "warning" not in again.stdout + again.stderr, again.stdout + again.stderr
+    images = [line for line in again.stdout.splitlines() if not line.startswith("  ")]
+    assert len(images) == 17, again.stdout  # 2 scenes × 8 illuminations, the closing line

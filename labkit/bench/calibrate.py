@@ -21,7 +21,7 @@ import numpy as np
 
 from labkit.bench.harness import Measurement, Plot, Table, peak_rss_mib, repeat_timed
 from labkit.bench.plots import plot_time_vs_error
-from labkit.rig import load_rig
+from labkit.rig import ExposureConfig, load_rig
 from labkit.sim.truth import model_error
 
 if TYPE_CHECKING:
@@ -69,7 +69,10 @@ def bench_calibrate(
     sim = SimulatedRig(rig)
     filtered = [name for name in rig.slider.illumination_names() if rig.filter_for(name)]
     start = time.perf_counter()
-    images = simulated_hdr_images(sim, SCENE, filtered, rng=np.random.default_rng(5))
+    thesis = ExposureConfig().filtered  # the thesis' bracket (§4.2.2), whatever the rig plans
+    images = simulated_hdr_images(
+        sim, SCENE, filtered, rng=np.random.default_rng(5), exposures_s=thesis
+    )
     render_s = time.perf_counter() - start
     bands = filter_bands(rig, images=images)
     disks = len(sim.scene(SCENE).disks.centres())

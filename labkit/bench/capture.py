@@ -22,7 +22,7 @@ from labkit.bench.harness import Measurement, measure
 from labkit.frame import Frame
 from labkit.protocol import Engine, build_plan
 from labkit.protocol.hardware import open_hardware
-from labkit.rig import Rig, load_rig
+from labkit.rig import ExposureConfig, Rig, load_rig
 from labkit.session import Session
 
 TARGET_FRAMES_PER_S = 15.0
@@ -87,14 +87,17 @@ def _storage_rig(rig: Rig, frames: int) -> Rig:
 
 
 def auto_bracketing_counts(rig: Rig) -> dict[str, Any]:
-    """Auto-bracket every (scene, illumination) of the plan at full size; check the truth.
+    """Auto-bracket every (scene, illumination) of the plan at full size, as a capture does
+    (metered, chosen and checked on the camera's frames); check against the truth.
 
-    Returns lit-frame counts (auto and the fixed lists) and the number of pixels that
-    some ladder exposure exposes properly (noise-free truth) but the chosen ones miss.
+    Returns lit-frame counts (auto, and the thesis' fixed lists of 3 unfiltered and 7
+    filtered exposures), the metering and check frames, the pixels that some ladder
+    exposure exposes properly (noise-free truth) but the chosen ones miss, and what the
+    choices reported (flooded by blooming, too few to be worth an exposure).
     """
     import numpy as np
 
-    from labkit.protocol import choose_exposures, estimate_rates, exposure_ladder, meter
+    from labkit.protocol import exposure_ladder, run_auto_bracketing
     from labkit.sim.camera import SimCamera
     from labkit.sim.world import SimulatedRig
 
@@ -102,19 +105,20 @@ def auto_bracketing_counts(rig: Rig) -> dict[str, Any]:
     camera = SimCamera(world, fast=True)
     auto = rig.plan.auto
     low, high = auto.low_fraction, auto.high_fraction
-    counts = {"auto_frames": 0, "fixed_frames": 0, "missed_pixels": 0, "metering_frames": 0}
+    thesis = ExposureConfig()  # its defaults are the thesis' lists (§4.2.2)
+    counts = dict.fromkeys(
+        ("auto_frames", "fixed_frames", "missed_pixels", "metering_frames", "flooded", "left_out"),
+        0,
+    )
     for scene in rig.plan.scenes:
         world.prerender(scene, rig.illuminations())
         camera.set_scene(scene)
         for illumination in rig.illuminations():
             camera.set_illumination(illumination)
             bounds = camera.exposure_bounds()
-            frames = meter(camera, bounds=bounds, maximum_s=auto.max_exposure_s, low=low, high=high)
+            choice = run_auto_bracketing(camera, bounds=bounds, auto=auto)
             ladder = exposure_ladder(
                 bounds, maximum_s=auto.max_exposure_s, steps_per_octave=auto.steps_per_octave
-            )
-            choice = choose_exposures(
-                estimate_rates(frames, high=high), ladder, low=low, high=high, margin=auto.margin
             )
             exposed = np.zeros(world.shape, dtype=bool)
             reachable = np.zeros(world.shape, dtype=bool)
@@ -125,11 +129,13 @@ def auto_bracketing_counts(rig: Rig) -> dict[str, Any]:
                 if float(t) in choice.exposures_s:
                     exposed |= proper
             replicates = rig.replicates_for(illumination)
-            fixed = rig.exposures_for(illumination)
+            kind = "unfiltered" if illumination == "unfiltered" else "filtered"
             counts["auto_frames"] += len(choice.exposures_s) * replicates
-            counts["fixed_frames"] += 0 if fixed == "auto" else len(fixed) * replicates
+            counts["fixed_frames"] += len(getattr(thesis, kind)) * replicates
             counts["missed_pixels"] += int(np.count_nonzero(reachable & ~exposed))
-            counts["metering_frames"] += len(frames)
+            counts["metering_frames"] += len(choice.metering_s) + len(choice.checked_s)
+            counts["flooded"] += choice.flooded
+            counts["left_out"] += choice.left_out
         world.clear_cache()
     return counts
 
@@ -209,10 +215,12 @@ def bench_capture(rig_path: str | Path, *, repeats: int = 1) -> tuple[list[Measu
         bracket.extra = dict(box)
         cases.append(bracket)
         notes.append(
-            f"Auto-bracketing: {box['auto_frames']} lit frames instead of the fixed lists' "
-            f"{box['fixed_frames']} ({box['metering_frames']} metering frames, not stored); "
-            f"{box['missed_pixels']} pixels that some allowed exposure exposes properly are "
-            "missed by the chosen ones (checked against the simulator's noise-free truth)."
+            f"Auto-bracketing: {box['auto_frames']} lit frames instead of the thesis' fixed "
+            f"lists' {box['fixed_frames']} ({box['metering_frames']} metering and check "
+            f"frames, not stored); {box['missed_pixels']} pixels that some allowed exposure "
+            "exposes properly are missed by the chosen ones (checked against the simulator's "
+            f"noise-free truth): {box['flooded']} found flooded by blooming at the exposure "
+            f"they need, {box['left_out']} too few to be worth an exposure of their own."
         )
         notes.append(
             f"Disk sequential write rate (1 GB, fsync): {disk_mb_s:.0f} MB/s. Storage target: "

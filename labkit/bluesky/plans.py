@@ -5,8 +5,8 @@ The plan runs the steps of :func:`labkit.protocol.build_plan`, in the same order
 the same device calls as ``labkit capture``'s engine:
 
 - the stage, the light cover and the slider move only when they must change;
-- an ``auto`` illumination is metered with :func:`labkit.protocol.metering`, its exposure
-  times chosen with :func:`labkit.protocol.choose_bracket`, and the plan rebuilt;
+- an ``auto`` illumination is metered, its exposure times chosen and checked with
+  :func:`labkit.protocol.auto_bracketing` (the engine's own sequence), and the plan rebuilt;
 - every frame is checked as the engine checks it.
 
 The documents it emits:
@@ -36,7 +36,7 @@ import labkit
 from labkit.bluesky.devices import LabkitCamera, LabkitSlider, LabkitStage, frame_from_reading
 from labkit.errors import ConfigError
 from labkit.frame import FrameKey
-from labkit.protocol.bracketing import choose_bracket, metering
+from labkit.protocol.bracketing import auto_bracketing
 from labkit.protocol.engine import check_frame, configure_camera
 from labkit.protocol.plan import (
     Capture,
@@ -151,9 +151,7 @@ def labkit_plan(
     def meter(step: Meter) -> Generator[Any, Any, None]:
         auto = rig.plan.auto
         bounds = camera.camera.exposure_bounds()
-        steps = metering(
-            bounds, maximum_s=auto.max_exposure_s, low=auto.low_fraction, high=auto.high_fraction
-        )
+        steps = auto_bracketing(bounds, auto)
         key = FrameKey(step.scene, step.illumination, 0.0, 0)
         exposure = next(steps)
         try:
@@ -161,8 +159,7 @@ def labkit_plan(
                 frame = yield from read_frame(exposure, key, METERING)
                 exposure = steps.send(frame)
         except StopIteration as done:
-            frames = done.value
-        choice = choose_bracket(frames, bounds, auto)
+            choice = done.value
         brackets[step.scene, step.illumination] = list(choice.exposures_s)
         yield from bps.mv(
             note.scene, step.scene, note.illumination, step.illumination,

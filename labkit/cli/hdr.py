@@ -57,7 +57,15 @@ def register(commands: Commands) -> None:
     parser.add_argument("--no-preview", action="store_true", help="skip the PNG previews")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument(
-        "--quiet", action="store_true", help="do not print the scaling-factor tables"
+        "--factors",
+        action="store_true",
+        help="also print each image's scaling factors against the exposure-time ratios "
+        "(thesis Table 4.1; they are in OUT/hdr.yaml in any case)",
+    )
+    parser.add_argument(
+        "--quiet",
+        action="store_true",
+        help="print only warnings and the closing line, not one line per image",
     )
     parser.set_defaults(handler=_hdr)
 
@@ -83,7 +91,7 @@ def _warn_of_missing_frames(sessions: list[Path]) -> None:
 def _hdr(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from labkit.hdr import factor_table, plan_sessions, run_hdr
+    from labkit.hdr import factor_table, image_summary, plan_sessions, run_hdr
     from labkit.io.output_folder import check_output_folder
 
     check_output_folder(args.out, command="labkit hdr", inputs=args.session)
@@ -95,15 +103,19 @@ def _hdr(args: argparse.Namespace) -> int:
 
     def report(output) -> None:
         result = output.result
-        text = [
-            f"{output.job.name}: reference {result.reference_exposure_s:g} s → {output.exr}",
-        ]
-        if not args.quiet:
+        if args.quiet:
+            text = [f"{output.job.name}:"] if result.warnings else []
+        else:
+            text = [f"{output.job.name}: {image_summary(result)} → {output.exr}"]
+        if args.factors:
             text.append(factor_table(result))
             if result.noise is not None:
                 text.append(f"gain {result.noise.gain_dn_per_e:.4f} DN/e⁻")
-            text.extend(f"warning: {w}" for w in result.warnings)
-        reports.append("\n".join(text))
+        if not args.quiet:
+            text.extend(f"  note: {n}" for n in result.notes)
+        text.extend(f"  warning: {w}" for w in result.warnings)
+        if text:
+            reports.append("\n".join(text))
 
     with tqdm(
         total=sum(p.frame_count for p in plans), unit="frame", desc="hdr", disable=args.no_progress
@@ -120,6 +132,9 @@ def _hdr(args: argparse.Namespace) -> int:
             on_image=lambda output: (bar.set_postfix_str(output.job.name), report(output)),
             on_warning=lambda text: print(f"labkit: warning: {text}", file=sys.stderr),
         )
-    print("\n\n".join(reports))
-    print(f"{len(run.outputs)} HDR image(s) and {run.index}")
+    if reports:
+        print("\n".join(reports))
+    warned = sum(bool(o.result.warnings) for o in run.outputs)
+    tail = f"; {warned} with warnings (above)" if warned else ""
+    print(f"{len(run.outputs)} HDR image(s) and {run.index}{tail}")
     return 0

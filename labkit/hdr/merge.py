@@ -37,7 +37,7 @@ from labkit.blas_threads import fixed_blas_threads
 from labkit.cfa import channel_index, check_layout
 from labkit.errors import DataError
 from labkit.hdr.noise import NoiseEstimator, NoiseModel
-from labkit.hdr.scaling import CHANNEL_NAMES, PairFactor, fit_pair_factor
+from labkit.hdr.scaling import CHANNEL_NAMES, MIN_PAIRS, PairFactor, fit_pair_factor
 from labkit.hdr.stack import ExposureInput, accumulate
 from labkit.hdr.weights import DISK_1, blend_weight
 
@@ -170,9 +170,16 @@ class HDRResult:
         Pixels clipped (or next to a clipped pixel) at every exposure, the shortest
         included; their values (copied from the shortest exposure) are lower bounds.
     warnings : list of str
+        What makes the result less trustworthy than it looks, and what to do about it: an
+        exposure that adds nothing, a factor fitted on too few pixels, pixels saturated at
+        every exposure.
     dark_pixels : int
         Pixels with no usable sample at any exposure yet unclipped at the shortest: no
-        signal above the dark level (thesis weights); copied from the shortest exposure.
+        signal above the dark level (thesis weights); their value is the longest
+        exposure's, where the dark level is measured best.
+    notes : list of str
+        What the merge did that follows from the scene, not from a fault: exposures that
+        share no properly exposed pixel (their exposure-time ratio is used), dark pixels.
     """
 
     raw: np.ndarray
@@ -186,6 +193,7 @@ class HDRResult:
     levels: SensorLevels
     warnings: list[str] = field(default_factory=list)
     dark_pixels: int = 0
+    notes: list[str] = field(default_factory=list)
 
     def provenance(self) -> dict[str, Any]:
         """JSON-friendly facts for the EXR header and the run report."""
@@ -223,6 +231,7 @@ class HDRResult:
             "saturated_pixels": self.saturated_pixels,
             "dark_pixels": self.dark_pixels,
             "warnings": self.warnings,
+            "notes": self.notes,
         }
 
 
@@ -239,7 +248,7 @@ def merge_exposures(
     method: str = "thesis",
     low: float = 0.02,
     high: float = 0.95,
-    min_pairs: int = 100,
+    min_pairs: int = MIN_PAIRS,
     fit_margin: int = FIT_MARGIN_PX,
     erode: bool = True,
     on_frame: Callable[[], None] | None = None,
@@ -309,6 +318,9 @@ def merge_exposures(
     pairs: list[PairFactor] = []
     summaries_in: list[tuple[float, int, int]] = []
     warnings: list[str] = []
+    notes: list[str] = []
+    longest_signal = None
+    proper_count: dict[float, int] = {}
     total = weight_sum = None
     pilot = has_pilot = shot_part = constant_part = None
     previous: tuple[np.ndarray, np.ndarray, float, np.ndarray] | None = None
@@ -339,11 +351,17 @@ def merge_exposures(
         unclipped = stats.maximum < clip_level
         usable = ndimage.binary_erosion(unclipped, structure=DISK_1, border_value=1)
         fittable = ndimage.binary_erosion(unclipped, structure=margin, border_value=1)
-        if not usable.any():
+        proper = usable & (signal >= low * saturation_range) & (signal <= high * saturation_range)
+        proper_count[exposure.exposure_s] = int(np.count_nonzero(proper))
+        del proper
+        if not proper_count[exposure.exposure_s]:
             warnings.append(
-                f"every pixel at {exposure.exposure_s:g} s reaches {high:.0%} of saturation "
-                "(or neighbours one that does); this exposure contributes nothing"
+                f"no pixel is properly exposed at {exposure.exposure_s:g} s (each is clipped, "
+                f"next to a clipped pixel, or below {low:.0%} of saturation): this exposure "
+                "adds nothing; leave it out of the plan's exposures, or let `auto` choose them"
             )
+        if longest_signal is None:
+            longest_signal = signal.copy()  # the best estimate of pixels that stay dark
         if previous is None:
             channel_chain: dict[str, float | None] = dict.fromkeys(CHANNEL_NAMES, 1.0)
         else:
@@ -361,7 +379,7 @@ def merge_exposures(
                 min_pairs=min_pairs,
             )
             if pair.fallback:
-                warnings.append(pair.fallback)
+                _report_fallback(pair, proper_count, min_pairs, warnings, notes)
             pairs.append(pair)
             chain *= pair.ratio
             last = channel_chains[longer_s]
@@ -425,14 +443,18 @@ def merge_exposures(
     no_weight = weight_sum <= 0
     merged = np.empty(shape, np.float32)
     np.divide(total, weight_sum, out=merged, where=~no_weight)
-    merged[no_weight] = signal[no_weight] * np.float32(reference_chain)  # the shortest exposure
-    to_output = np.float32(1.0 / (reference_chain * saturation_range))
-    merged *= to_output
     # no weight anywhere: clipped (or next to a clipped pixel) at the shortest exposure, or
     # else never above the dark level (thesis weights are 0 at p ≤ 0)
     clipped = ~previous[1]
-    saturated = int(np.count_nonzero(no_weight & clipped))
-    unlit = int(np.count_nonzero(no_weight & ~clipped))
+    saturated_mask = no_weight & clipped
+    unlit_mask = no_weight & ~clipped
+    merged[saturated_mask] = signal[saturated_mask] * np.float32(reference_chain)  # shortest
+    merged[unlit_mask] = longest_signal[unlit_mask]  # the longest exposure's units: chain 1
+    to_output = np.float32(1.0 / (reference_chain * saturation_range))
+    merged *= to_output
+    saturated = int(np.count_nonzero(saturated_mask))
+    unlit = int(np.count_nonzero(unlit_mask))
+    del longest_signal, saturated_mask, unlit_mask
 
     noise_model = None
     variance_out = None
@@ -451,10 +473,9 @@ def merge_exposures(
             f"exposure {reference:g} s; their values are lower bounds"
         )
     if unlit:
-        warnings.append(
-            f"{unlit} pixels have no usable sample at any exposure and are not clipped at "
-            f"the shortest ({reference:g} s): no signal above the dark level; their values "
-            "come from the shortest exposure"
+        notes.append(
+            f"{unlit} pixel(s) show no signal above the dark level at any exposure (up to "
+            f"{order[0].exposure_s:g} s); their values are the longest exposure's"
         )
     summaries = [
         ExposureSummary(
@@ -487,7 +508,33 @@ def merge_exposures(
         levels=levels,
         dark_pixels=unlit,
         warnings=warnings,
+        notes=notes,
     )
+
+
+def _report_fallback(
+    pair: PairFactor,
+    proper_count: dict[float, int],
+    min_pairs: int,
+    warnings: list[str],
+    notes: list[str],
+) -> None:
+    """Say why a pair's exposure-time ratio was used: a note when the scene has no light
+    level both exposures see properly (nothing could be measured; each exposure adds pixels
+    of its own), a warning when the fit had some pixels but too few, or failed."""
+    both_useful = proper_count[pair.longer_s] > 0 and proper_count[pair.shorter_s] > 0
+    if pair.pairs == 0 and both_useful:
+        notes.append(
+            f"no pixel is properly exposed at both {pair.longer_s:g} s and {pair.shorter_s:g} s "
+            "(the scene's light levels lie farther apart than one exposure's range): their "
+            "exposure-time ratio is used"
+        )
+    elif pair.pairs == 0:
+        return  # the exposure that adds nothing has its own warning
+    elif pair.pairs < min_pairs:
+        warnings.append(f"{pair.fallback}; an exposure between them would let the merge measure it")
+    else:
+        warnings.append(pair.fallback or "")
 
 
 def _check_finite(image: np.ndarray, name: str) -> None:

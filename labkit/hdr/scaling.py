@@ -57,6 +57,11 @@ class PairFactor:
         return self.ratio / self.nominal - 1.0
 
 
+MIN_PAIRS = 100
+"""Fewest pixels properly exposed in both of two exposures (and away from clipping) from
+which their ratio is fitted; with fewer, the exposure-time ratio is used."""
+
+
 @fixed_blas_threads
 def fit_pair_factor(
     longer: np.ndarray,
@@ -69,7 +74,7 @@ def fit_pair_factor(
     saturation_range: float,
     low: float = 0.02,
     high: float = 0.95,
-    min_pairs: int = 100,
+    min_pairs: int = MIN_PAIRS,
 ) -> PairFactor:
     """Fit the ratio between two dark-subtracted exposures of the same scene.
 

@@ -425,6 +425,23 @@ def _merge_plan(
             on_image(output)
 
 
+def image_summary(result: HDRResult) -> str:
+    """One line for one merged image: its exposures, and how far the fitted scaling factors
+    lie from the exposure-time ratios."""
+    times = sorted(e.exposure_s for e in result.exposures)
+    span = exposure_label(times[0])
+    if len(times) > 1:
+        span += f"–{exposure_label(times[-1])}"
+    text = f"{len(times)} exposure{'s' if len(times) > 1 else ''} {span}"
+    if result.pairs:
+        worst = max(abs(e.disagreement) for e in result.exposures)
+        text += f", factors within {worst:.1%} of the exposure-time ratios"
+        nominal = sum(pair.fallback is not None for pair in result.pairs)
+        if nominal:
+            text += f" ({nominal} of {len(result.pairs)} taken from them)"
+    return text
+
+
 def factor_table(result: HDRResult) -> str:
     """The Table 4.1 comparison as Markdown: fitted factors against exposure-time ratios."""
     lines = [
@@ -625,8 +642,19 @@ def _index(plans: list[HDRPlan], run: HDRRun) -> dict[str, Any]:
                     for e in o.result.exposures
                 ],
                 "noise": None if o.result.noise is None else o.result.noise.as_dict(),
+                "pairs": [
+                    {
+                        "longer_s": pair.longer_s,
+                        "shorter_s": pair.shorter_s,
+                        "pixels": pair.pairs,
+                        "fitted": pair.fallback is None,
+                    }
+                    for pair in o.result.pairs
+                ],
                 "saturated_pixels": o.result.saturated_pixels,
+                "dark_pixels": o.result.dark_pixels,
                 "warnings": o.result.warnings,
+                "notes": o.result.notes,
             }
             for o in run.outputs
         ],

@@ -124,6 +124,7 @@ def simulated_hdr_images(
     rng: np.random.Generator,
     replicates: int | None = None,
     darks: int = 5,
+    exposures_s: Sequence[float] | None = None,
 ) -> list[RawImage]:
     """HDR images of a simulated scene without capturing: the truth plus merge-level noise.
 
@@ -143,6 +144,9 @@ def simulated_hdr_images(
         Replicates per exposure (default: the rig's plan).
     darks : int
         Dark frames per exposure.
+    exposures_s : sequence of float, optional
+        Exposure times of every illumination's bracket, s (default: the rig plan's, which
+        must then be explicit lists rather than ``auto``).
 
     Returns
     -------
@@ -154,9 +158,12 @@ def simulated_hdr_images(
     rig.prerender(scene, list(illuminations))
     images = []
     for name in illuminations:
-        exposures = rig.rig.exposures_for(name)
+        exposures = rig.rig.exposures_for(name) if exposures_s is None else list(exposures_s)
         if exposures == "auto":
-            raise ValueError("simulated_hdr_images needs explicit exposures in the rig plan")
+            raise ValueError(
+                f"the rig plan auto-brackets {name!r}: give simulated_hdr_images the "
+                "exposures_s of the bracket to simulate"
+            )
         count = replicates or rig.rig.replicates_for(name)
         rate = rig.irradiance(scene, name) * sensor.prnu_map
         truth = merge_truth(

@@ -2,6 +2,7 @@
 
 from labkit.protocol.bracketing import (
     BracketChoice,
+    auto_bracketing,
     choose_bracket,
     choose_exposures,
     estimate_rates,
@@ -9,6 +10,8 @@ from labkit.protocol.bracketing import (
     frame_levels,
     meter,
     metering,
+    run_auto_bracketing,
+    usable_in,
 )
 from labkit.protocol.engine import (
     CaptureReport,
@@ -50,6 +53,7 @@ __all__ = [
     "SimStage",
     "Stage",
     "UncoverLight",
+    "auto_bracketing",
     "build_plan",
     "check_frame",
     "choose_bracket",
@@ -61,5 +65,7 @@ __all__ = [
     "frame_levels",
     "meter",
     "metering",
+    "run_auto_bracketing",
+    "usable_in",
     "validate_plan",
 ]

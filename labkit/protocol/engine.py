@@ -19,7 +19,7 @@ from labkit.devices.slider import FilterSlider
 from labkit.errors import DeviceError, LabkitError
 from labkit.frame import Frame
 from labkit.io.plain import now_iso
-from labkit.protocol.bracketing import choose_bracket, meter
+from labkit.protocol.bracketing import run_auto_bracketing
 from labkit.protocol.plan import (
     Capture,
     FrameKey,
@@ -218,14 +218,7 @@ class Engine:
         auto = self.rig.plan.auto
         self.progress.set_step(f"meter {step.scene}/{step.illumination}")
         bounds = self.camera.exposure_bounds()
-        frames = meter(
-            self.camera,
-            bounds=bounds,
-            maximum_s=auto.max_exposure_s,
-            low=auto.low_fraction,
-            high=auto.high_fraction,
-        )
-        choice = choose_bracket(frames, bounds, auto)
+        choice = run_auto_bracketing(self.camera, bounds=bounds, auto=auto)
         fixed = self.rig.replicates_for(step.illumination)
         self.session.save_bracket(step.scene, step.illumination, choice.as_dict())
         self.session.log(

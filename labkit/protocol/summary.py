@@ -73,6 +73,12 @@ def summarise(session: Session, *, problems: dict[str, str] | None = None) -> st
                 f"  auto      {scene}/{illumination}: [{times}], skipped "
                 f"{len(choice.get('skipped_s', []))} ladder step(s), "
                 f"{choice.get('too_dark', 0)} px too dark, {choice.get('too_bright', 0)} too bright"
+                + (f", {choice['flooded']} flooded" if choice.get("flooded") else "")
+                + (
+                    f", {len(choice['unlinked_s'])} unlinked pair(s)"
+                    if choice.get("unlinked_s")
+                    else ""
+                )
             )
     stats = info.get("stream_statistics")
     if stats:

@@ -157,12 +157,24 @@ def test_vignetting_correction_leaves_the_model_unchanged(disk_hdr, polynomial_d
 
 
 def test_band_purity_measured_from_the_images_matches_the_simulated_camera(disk_hdr) -> None:
-    """On the simulator the rig's response is the truth: images and response agree."""
+    """On the simulator the rig's response is the truth: images and response agree.
+
+    Purity is 1 − leak / rate, so a leak-dominated band's purity moves by (1 − purity)
+    times any relative error of its rate: the HDR images' mean rates match the noise-free
+    truth within 1 %, but the response, tabulated coarser than the simulator renders,
+    predicts the 400 nm band's rate 10 % high (measured), hence 0.1 at 400 nm."""
     rig, _, images = disk_hdr
+    world = SimulatedRig(rig)
+    model = world.sensor.model
+    scale = model.gain_factor(0.0) / (model.saturation_dn() - model.black_level_dn)
+    for image in images:
+        truth = world.irradiance("disks", image.illumination) * world.sensor.prnu_map * scale
+        rate = float(np.mean(image.raw)) / image.exposure_s
+        assert rate == pytest.approx(float(np.mean(truth)), rel=0.01), image.illumination
     measured = filter_bands(rig, images=images)
     assert {band.source for band in measured.values()} == {"images"}
     for name, band in measured.items():
-        assert band.purity == pytest.approx(band.response_purity, abs=0.07), name
+        assert band.purity == pytest.approx(band.response_purity, abs=0.1), name
         assert band.brightness == pytest.approx(1.0, abs=0.2), name
         assert (band.purity >= MIN_PURITY) == (band.response_purity >= MIN_PURITY), name
     assert {name for name, band in measured.items() if band.purity < MIN_PURITY} == {"400", "700"}

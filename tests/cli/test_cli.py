@@ -25,14 +25,16 @@ def test_version_and_help(capsys: pytest.CaptureFixture[str]) -> None:
 
 
 def test_rig_check_summarises_the_thesis_plan(
-    sim_rig_path: Path, capsys: pytest.CaptureFixture[str]
+    thesis_rig_path: Path, sim_rig_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    assert main(["rig", "check", str(sim_rig_path)]) == 0
+    assert main(["rig", "check", str(thesis_rig_path)]) == 0
     out = capsys.readouterr().out
     # thesis protocol: 2 scenes × (3 exposures × 15 + 7 filters × 7 exposures × 5) + darks
     # (3 × 15 + 7 × 5) = 580 + 80
     assert "660 frames" in out
     assert "CFA GBRG" in out and "measured '442 nm'" in out
+    assert main(["rig", "check", str(sim_rig_path)]) == 0  # the shipped rig auto-brackets
+    assert "8 illuminations, auto-bracketed" in capsys.readouterr().out
 
 
 def test_rig_check_error_is_one_line_without_traceback(tmp_path: Path) -> None:

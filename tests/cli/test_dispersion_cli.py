@@ -31,6 +31,7 @@ def hdr_folder(tmp_path_factory: pytest.TempPathFactory, sim_rig_path: Path):
             "sim.sensor.width": SHAPE[1],
             "sim.sensor.height": SHAPE[0],
             "sim.scenes.disks": {"type": "disks", "radius_px": 8, "pitch_px": 32},
+            "plan.exposures_s": {"unfiltered": [0.003], "filtered": [0.025, 0.1, 0.4, 1.6]},
         },
     )
     sim = SimulatedRig(load_rig(rig_file))

@@ -183,8 +183,9 @@ def test_an_all_saturated_exposure_contributes_nothing():
     merged = merge_exposures(inputs, darks, cfa="GRBG", levels=levels, method="noise")
     without = merge_exposures(inputs[:2], darks, cfa="GRBG", levels=levels, method="noise")
     np.testing.assert_allclose(merged.raw, without.raw, rtol=1e-5)
-    assert any("every pixel at 2 s" in w for w in merged.warnings)
-    assert any("exposure-time ratio" in w for w in merged.warnings)  # nominal fallback
+    assert any("no pixel is properly exposed at 2 s" in w for w in merged.warnings)
+    assert merged.pairs[0].fallback and "exposure-time ratio" in merged.pairs[0].fallback
+    assert len(merged.warnings) == 1  # the pair's fallback follows from it: not repeated
     assert merged.exposures[-1].factor == pytest.approx(0.002 / 2.0, rel=1e-3)
 
 

@@ -188,10 +188,17 @@ def test_frame_of_wrong_size_on_disk_is_named(session_copy, tmp_path):
         plan_hdr(session_copy)
 
 
-def test_cli_prints_the_factor_table_and_one_line_errors(captured, tmp_path, capsys):
+def test_cli_prints_a_line_per_image_the_factor_table_and_one_line_errors(
+    captured, tmp_path, capsys
+):
     _, session = captured
     out = tmp_path / "cli"
     status = main(["hdr", str(session.folder), "--out", str(out), "--no-progress"])
+    lines = capsys.readouterr().out.splitlines()
+    assert status == 0 and len(lines) == 3, lines  # two images and the closing line
+    assert lines[0].startswith("colorchecker/550: 3 exposures 20ms–320ms, factors within ")
+    assert "warning" not in " ".join(lines)
+    status = main(["hdr", str(session.folder), "--out", str(out), "--no-progress", "--factors"])
     text = capsys.readouterr().out
     assert status == 0
     assert "| exposure | t_ref/t | fitted |" in text and "colorchecker/550" in text

@@ -10,11 +10,15 @@ import pytest
 from labkit.devices.camera import Bounds
 from labkit.errors import DataError
 from labkit.frame import Frame
+from labkit.hdr.merge import FIT_MARGIN_PX
+from labkit.hdr.scaling import MIN_PAIRS
 from labkit.protocol.bracketing import (
     choose_exposures,
     estimate_rates,
     exposure_ladder,
     meter,
+    run_auto_bracketing,
+    usable_in,
 )
 from labkit.sim import SimCamera, SimulatedRig
 
@@ -57,7 +61,7 @@ def test_greedy_choice_is_minimal_and_every_exposure_adds_pixels(seed: int) -> N
     rng = np.random.default_rng(seed)
     ladder = exposure_ladder(Bounds(1e-3, 2.0), steps_per_octave=1)  # 11 steps
     rate = 10.0 ** rng.uniform(-0.5, 2.5, size=40)
-    choice = choose_exposures(rate, ladder, margin=1.0)
+    choice = choose_exposures(rate, ladder, margin=1.0, min_overlap=0)
     chosen = choice.exposures_s
     covered = np.zeros(rate.size, bool)
     for t in chosen:
@@ -116,3 +120,100 @@ def test_auto_bracketing_exposes_every_reachable_pixel_of_the_simulator(
         auto_frames += len(choice.exposures_s) * replicates
         fixed_frames += len(rig.exposures_for(illumination)) * replicates
     assert auto_frames < fixed_frames
+
+
+def test_every_exposure_but_the_shortest_is_as_short_as_its_own_pixels_allow() -> None:
+    """Greedy stabbing would expose the dim pixels at the top of their window (0.826 s for
+    rate 1), overexposing the bright ones 80 times; the choice is the shortest exposure that
+    still exposes every dim pixel (≥ 0.046 s for rate 0.5); the shortest exposure stays at
+    the top of its pixels' window."""
+    ladder = exposure_ladder(Bounds(1e-4, 10.0), steps_per_octave=4)
+    rate = np.repeat([100.0, 1.0, 0.5], 50)
+    choice = choose_exposures(rate, ladder, min_overlap=0)
+    short, long = choice.exposures_s
+    assert short == ladder[ladder <= 0.95 / 1.15 / 100][-1]
+    assert long == ladder[ladder >= 0.02 * 1.15 / 0.5][0]
+    assert choice.covered == 150 and not choice.left_out
+
+
+def _shared(rate: np.ndarray, a: float, b: float) -> int:
+    """Pixels the merge can fit the ratio of exposures a < b on (truth): properly exposed in
+    both (window narrowed by the margin), no pixel within FIT_MARGIN_PX clipped at either."""
+    from scipy import ndimage
+
+    size = 2 * FIT_MARGIN_PX + 1
+    ok = [
+        _properly(rate, t, 0.02 * 1.15, 0.95 / 1.15)
+        & ~ndimage.maximum_filter(rate * t > 0.95 / 1.15, size=size, mode="nearest")
+        for t in (a, b)
+    ]
+    return int(np.count_nonzero(ok[0] & ok[1]))
+
+
+def test_consecutive_exposures_are_linked_where_the_scene_allows() -> None:
+    """Paper (rate 100) and ink (0.1) with a strip of every level between: the fewest
+    exposures share no pixel the merge could fit their ratio on; one exposure between them,
+    exposing the strip, links both with MIN_PAIRS pixels or more (known: 448 each)."""
+    ladder = exposure_ladder(Bounds(1e-4, 10.0), steps_per_octave=4)
+    strip = np.tile(np.logspace(-1, 2, 128), (16, 1))
+    rate = np.vstack([np.full((24, 128), 100.0), strip, np.full((24, 128), 0.1)])
+    plain = choose_exposures(rate, ladder, min_overlap=0)
+    linked = choose_exposures(rate, ladder)
+    assert [_shared(rate, a, b) for a, b in itertools.pairwise(plain.exposures_s)] == [0]
+    assert len(linked.linking_s) == 1 and not linked.unlinked_s
+    assert linked.exposures_s == sorted([*plain.exposures_s, *linked.linking_s])
+    for a, b in itertools.pairwise(linked.exposures_s):
+        assert _shared(rate, a, b) >= MIN_PAIRS, (a, b)
+    assert linked.covered == plain.covered == rate.size
+
+
+def test_two_light_levels_farther_apart_than_one_window_are_reported_unlinked() -> None:
+    ladder = exposure_ladder(Bounds(1e-4, 10.0), steps_per_octave=4)
+    rate = np.kron(np.array([[100.0, 0.1], [0.1, 100.0]]), np.ones((32, 32)))
+    choice = choose_exposures(rate, ladder)
+    short, long = choice.exposures_s
+    assert choice.unlinked_s == [[short, long]] and not choice.linking_s
+    assert "share fewer than" in choice.summary()
+
+
+def test_a_handful_of_pixels_is_not_worth_an_exposure() -> None:
+    ladder = exposure_ladder(Bounds(1e-4, 10.0), steps_per_octave=4)
+    rate = np.full((100, 100), 1.0)
+    rate[50, 50:55] = 1e-3  # five pixels that would need about 20 s
+    rate[10, 10:15] = 0.01  # five that need their own, longer exposure
+    choice = choose_exposures(rate, ladder)
+    assert len(choice.exposures_s) == 1
+    assert choice.left_out == 5 and choice.too_dark == 5
+    assert "too few to be worth" in choice.summary()
+    every = choose_exposures(rate, ladder, min_pixels=1)
+    assert len(every.exposures_s) == 2 and every.left_out == 0
+
+
+@pytest.mark.parametrize(("scene", "illumination"), [("disks", "600"), ("disks", "unfiltered")])
+def test_checked_bracketing_chooses_exposures_the_merge_can_use(
+    small_sim_rig: SimulatedRig, scene: str, illumination: str
+) -> None:
+    """The simulator's sensor blooms: around paper overexposed tens of times the dark disks
+    read saturated. Every exposure the checked choice keeps has at least the pixels it was
+    kept for usable in a new frame (the merge's rule), and reads them within 10 % of their
+    noise-free truth; every kept exposure was checked."""
+    rig = small_sim_rig.rig
+    auto = rig.plan.auto
+    model = small_sim_rig.sensor.model
+    scale = model.gain_factor(0.0) / (model.saturation_dn() - model.black_level_dn)
+    truth = small_sim_rig.irradiance(scene, illumination) * small_sim_rig.sensor.prnu_map
+    least = min(MIN_PAIRS, truth.size // 1000)
+    camera = SimCamera(small_sim_rig, seed=3, fast=True)
+    camera.set_scene(scene)
+    camera.set_illumination(illumination)
+    bounds = camera.exposure_bounds()
+    choice = run_auto_bracketing(camera, bounds=bounds, auto=auto)
+    assert set(choice.exposures_s) <= set(choice.checked_s)
+    for exposure in choice.exposures_s:
+        frame = camera.grab(exposure, 1)[0]
+        usable = usable_in(frame, low=auto.low_fraction, high=auto.high_fraction)
+        assert np.count_nonzero(usable) >= least, exposure
+        black, saturation = float(frame.extra["black_level"]), float(frame.extra["saturation_dn"])
+        reading = (frame.image[usable] - black) / (saturation - black)
+        expected = truth[usable] * scale * exposure
+        assert np.median(np.abs(reading / expected - 1)) < 0.1, exposure

@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 import pytest
-from _helpers import expected_counts, quick_plan
+from _helpers import THESIS_EXPOSURES, expected_counts, quick_plan
 
 from labkit.errors import ConfigError, DeviceError
 from labkit.io import read_raw_tiff
@@ -133,8 +133,8 @@ def test_auto_bracketing_captures_fewer_frames_and_resumes_with_its_choice(
     changes = _quick()
     changes["plan.exposures_s"] = {"unfiltered": "auto", "filtered": "auto"}
     rig = load_rig(make_rig(**changes))
-    del changes["plan.exposures_s"]
-    fixed = load_rig(make_rig(**changes))  # the thesis' fixed exposure lists
+    changes["plan.exposures_s"] = THESIS_EXPOSURES
+    fixed = load_rig(make_rig(**changes))
     report, session, _ = _run(rig, tmp_path / "s")
     lit = [r for r in session.records.values() if not r["dark"]]
     fixed_lit = [k for k in build_plan(fixed).keys() if not k.is_dark]

@@ -12,8 +12,8 @@ from labkit.rig import load_rig
 from labkit.sim import SimCamera, SimulatedRig
 
 
-def test_thesis_plan_counts_and_dark_frames(sim_rig_path: Path) -> None:
-    plan = build_plan(load_rig(sim_rig_path))
+def test_thesis_plan_counts_and_dark_frames(thesis_rig_path: Path) -> None:
+    plan = build_plan(load_rig(thesis_rig_path))
     # 2 scenes × (3 × 15 + 7 filters × 7 × 5) + darks (3 × 15 + 7 × 5)
     assert plan.frame_count == 660 and plan.pending_meters == 0
     keys = plan.keys()
@@ -26,7 +26,14 @@ def test_thesis_plan_counts_and_dark_frames(sim_rig_path: Path) -> None:
 
 
 def test_auto_illuminations_meter_first_then_use_their_bracket(make_rig) -> None:
-    rig = load_rig(make_rig(**{"plan.exposures_s.filtered": "auto", "plan.scenes": ["disks"]}))
+    rig = load_rig(
+        make_rig(
+            **{
+                "plan.exposures_s": {"unfiltered": [0.003, 0.006, 0.012], "filtered": "auto"},
+                "plan.scenes": ["disks"],
+            }
+        )
+    )
     plan = build_plan(rig)
     assert plan.pending_meters == 7 and plan.frame_count == 3 * 15 + 3 * 15
     for_450 = [s for s in plan.steps if isinstance(s, Meter | Capture) and s.illumination == "450"]
