@@ -181,14 +181,19 @@ def bench_capture(rig_path: str | Path, *, repeats: int = 1) -> tuple[list[Measu
         }
         cases.append(case)
 
-        plan = build_plan(rig)
+        # the thesis' fixed lists (ExposureConfig's defaults), whatever the rig file plans
+        thesis = rig.model_copy(
+            update={"plan": rig.plan.model_copy(update={"exposures_s": ExposureConfig()})}
+        )
+        plan = build_plan(thesis)
         report_box: dict[str, Any] = {}
 
         def protocol() -> None:
             folder = work / "thesis"
-            session = Session.create(folder, rig)
-            with open_hardware(rig, fast=True) as hw:
-                report_box["report"] = Engine(rig, hw.camera, hw.slider, hw.stage, session).run()
+            session = Session.create(folder, thesis)
+            with open_hardware(thesis, fast=True) as hw:
+                engine = Engine(thesis, hw.camera, hw.slider, hw.stage, session)
+                report_box["report"] = engine.run()
                 report_box["problems"] = session.verify()
             shutil.rmtree(folder)
 
