@@ -23,6 +23,7 @@ import numpy as np
 
 from calibration.dispersion_model import DispersionModel, load_dispersion_model
 from calibration.model_domain import DomainUse, domain_use
+from calibration.sensitivity import is_sensitivity_file, load_response
 from labkit.cfa import check_layout
 from labkit.errors import ConfigError, DataError
 from labkit.spectra import Spectra
@@ -112,8 +113,14 @@ class ReconstructOptions:
     ----------
     cfa : str
         Bayer layout (RGGB, GRBG, GBRG, BGGR).
-    response : Spectra, optional
-        Camera response R, G, B over wavelength; required for ``latent="spectral"``.
+    response : Spectra, str, Path or spectral distributions, optional
+        Camera response R, G, B over wavelength; required for ``latent="spectral"``. A
+        :class:`~labkit.spectra.Spectra`; a colour-science camera dataset name (e.g.
+        ``"Nikon 5100 (NPL)"``); a response CSV ``wavelength_nm,R,G,B``; the
+        ``sensitivity.yaml``/``.csv`` of ``labkit calibrate sensitivity`` (its bands are
+        then the default `bands`); colour-science ``MultiSpectralDistributions`` (e.g.
+        ``colour.MSDS_CAMERA_SENSITIVITIES[name]``) or three ``SpectralDistribution``; or
+        ``(wavelengths_nm, values)`` with values of shape (n, 3).
     bands : sequence of float, optional
         Band centres, nm, equally spaced; default chosen from the response (§3.3.2).
     dispersion : DispersionModel or path, optional
@@ -231,7 +238,7 @@ class ReconstructOptions:
     """
 
     cfa: str
-    response: Spectra | None = None
+    response: Spectra | str | Path | Any | None = None
     bands: Sequence[float] | None = None
     dispersion: DispersionModel | str | Path | None = None
     correction: str = "model"
@@ -261,6 +268,7 @@ class ReconstructOptions:
         except DataError as error:
             raise OptionError("cfa", f"{{option}}: {error}") from None
         object.__setattr__(self, "cfa", layout)
+        self._load_response()
         for spec in OPTION_TABLE:  # each option's own type and bounds, as the CLI checks them
             try:
                 object.__setattr__(self, spec.name, spec.check(getattr(self, spec.name)))
@@ -289,6 +297,28 @@ class ReconstructOptions:
                 "correction", "{option} warp needs a dispersion model ({dispersion}) to warp with"
             )
         self.model  # noqa: B018  (loaded now: a missing or malformed file fails here)
+
+    def _load_response(self) -> None:
+        """Make `response` a Spectra, keeping its name (a path or dataset) for the records;
+        a sensor map's bands become the default bands."""
+        source = self.response
+        object.__setattr__(self, "_response_source", "in memory" if source is not None else None)
+        if source is None or isinstance(source, Spectra):
+            return
+        try:
+            response = load_response(source)
+        except DataError as error:
+            raise OptionError("response", f"{{option}}: {error}") from None
+        object.__setattr__(self, "response", response)
+        if isinstance(source, str | Path):
+            object.__setattr__(self, "_response_source", str(source))
+            if self.bands is None and self.latent == "spectral" and is_sensitivity_file(source):
+                object.__setattr__(self, "bands", tuple(float(w) for w in response.wavelengths))
+
+    @property
+    def response_source(self) -> str | None:
+        """Where the response came from: its path or dataset name, ``"in memory"`` or None."""
+        return getattr(self, "_response_source", None)
 
     def _check_band_balance(self) -> None:
         gamma = self.band_balance
@@ -481,7 +511,7 @@ class ReconstructOptions:
         for f in fields(self):
             value = getattr(self, f.name)
             if f.name == "response" and value is not None:
-                value = "in memory"
+                value = self.response_source
             elif f.name == "dispersion":
                 value = self.dispersion_source
             elif f.name == "scheduler" and value is not None and not isinstance(value, str):

@@ -495,16 +495,19 @@ def is_sensitivity_file(source: str | Path) -> bool:
     return "r_over_g" in [cell.strip() for cell in header]
 
 
-def load_response(source: str | Path) -> Spectra:
-    """A camera response from a dataset name, a response CSV, or a measured sensitivity.
+def load_response(source: object) -> Spectra:
+    """A camera response from a dataset name, a response CSV, a measured sensitivity, or
+    spectra in memory.
 
     Parameters
     ----------
-    source : str or Path
-        A colour-science camera dataset name, a CSV ``wavelength_nm,R,G,B``, or the
-        ``sensitivity.yaml``/``.csv`` of ``labkit calibrate sensitivity`` (then
-        :meth:`ChannelSensitivity.as_response`: sampled at its bands).
+    source : str, Path, or spectra
+        The ``sensitivity.yaml``/``.csv`` of ``labkit calibrate sensitivity`` (then
+        :meth:`ChannelSensitivity.as_response`: sampled at its bands), or anything
+        :func:`labkit.spectra.camera_response` takes: a colour-science camera dataset name,
+        a CSV ``wavelength_nm,R,G,B``, a :class:`Spectra`, colour-science spectral
+        distributions, ``(wavelengths_nm, values)``.
     """
-    if is_sensitivity_file(source):
+    if isinstance(source, str | Path) and is_sensitivity_file(source):
         return ChannelSensitivity.from_file(source).as_response()
     return camera_response(source)

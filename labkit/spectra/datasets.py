@@ -53,15 +53,58 @@ def lab_spectra() -> Spectra:
     return Spectra(rows[:, 0], rows[:, 1:], tuple(header[1:]))
 
 
-def camera_response(source: str | Path) -> Spectra:
+def camera_response(source: object) -> Spectra:
     """Camera spectral response Q_c(λ) with channels ``("R", "G", "B")``.
 
     Parameters
     ----------
-    source : str or Path
-        A colour-science camera-sensitivity dataset name (e.g. ``"Nikon 5100 (NPL)"``)
-        or a CSV file with header ``wavelength_nm,R,G,B`` (relative response).
+    source : str, Path, Spectra, colour-science distributions, or (wavelengths, values)
+        A colour-science camera-sensitivity dataset name (e.g. ``"Nikon 5100 (NPL)"``); a
+        CSV file with header ``wavelength_nm,R,G,B`` (relative response); a
+        :class:`Spectra` of three channels; a colour-science ``MultiSpectralDistributions``
+        of three channels (e.g. ``colour.MSDS_CAMERA_SENSITIVITIES["Nikon 5100 (NPL)"]``)
+        or a sequence of three ``SpectralDistribution`` (R, G, B); or a pair
+        ``(wavelengths_nm, values)`` with values of shape (n, 3). Channels are taken in the
+        order R, G, B.
+
+    Raises
+    ------
+    DataError
+        For anything else, or a response that is not three finite, non-negative channels.
     """
+    if isinstance(source, str | Path):
+        return _named_response(source)
+    if isinstance(source, Spectra):
+        response = source
+    elif _is_colour_multi(source):
+        response = _from_colour(source)
+    elif _is_colour_sequence(source):
+        response = _from_colour_sequence(source)
+    elif isinstance(source, tuple) and len(source) == 2:
+        wavelengths, values = (np.asarray(part, dtype=np.float64) for part in source)
+        if values.ndim != 2 or values.shape[1] != 3 or wavelengths.shape != values.shape[:1]:
+            raise DataError(
+                f"a camera response (wavelengths_nm, values) needs values of shape (n, 3) "
+                f"for n wavelengths; got {wavelengths.shape} and {values.shape}"
+            )
+        response = Spectra(wavelengths, values, ("R", "G", "B"))
+    else:
+        raise DataError(
+            f"a camera response cannot be made from {type(source).__name__}: give a "
+            "colour-science dataset name, a CSV path, a Spectra, colour-science spectral "
+            "distributions, or (wavelengths_nm, values of shape (n, 3))"
+        )
+    if response.values.shape[1] != 3:
+        raise DataError(
+            f"a camera response has three channels (R, G, B); this one has "
+            f"{response.values.shape[1]} ({', '.join(response.labels)})"
+        )
+    if np.any(response.values < 0):
+        raise DataError("camera responses must be ≥ 0")
+    return Spectra(response.wavelengths, response.values, ("R", "G", "B"))
+
+
+def _named_response(source: str | Path) -> Spectra:
     import colour
 
     name = str(source)
@@ -76,6 +119,30 @@ def camera_response(source: str | Path) -> Spectra:
         f"unknown camera response {name!r}: give a CSV file (wavelength_nm,R,G,B) "
         f"or one of the colour-science datasets: {known}"
     )
+
+
+def _is_colour_multi(value: object) -> bool:
+    return all(hasattr(value, name) for name in ("wavelengths", "values", "labels", "copy"))
+
+
+def _is_colour_sequence(value: object) -> bool:
+    return (
+        isinstance(value, list | tuple)
+        and len(value) == 3
+        and all(hasattr(sd, "wavelengths") and hasattr(sd, "values") for sd in value)
+    )
+
+
+def _from_colour_sequence(distributions: object) -> Spectra:
+    """Three colour-science SpectralDistributions (R, G, B) on their common wavelengths."""
+    grids = [np.asarray(sd.wavelengths, dtype=np.float64) for sd in distributions]
+    if any(grid.shape != grids[0].shape or np.any(grid != grids[0]) for grid in grids[1:]):
+        raise DataError(
+            "the three spectral distributions of a camera response must share their "
+            "wavelengths; align them first (colour: sd.align(shape))"
+        )
+    values = np.stack([np.asarray(sd.values, dtype=np.float64) for sd in distributions], axis=1)
+    return Spectra(grids[0], values, ("R", "G", "B"))
 
 
 def _read_response_csv(path: Path) -> Spectra:

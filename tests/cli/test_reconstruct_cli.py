@@ -448,6 +448,12 @@ def test_a_measured_sensor_map_is_a_response_with_its_own_bands(tmp_path: Path, 
     reference = log["choices"]["reference"]
     assert log["reference"] == "mean-colour" and reference["source"] == "follows"
     assert reference["evidence"] == {"green_per_band": 1.0}
+    # the same file given to the Python API: the map's bands by default too
+    from reconstruction import ReconstructOptions
+
+    options = ReconstructOptions(cfa="GBRG", response=tmp_path / "sensitivity.yaml")
+    assert options.bands == tuple(wavelengths)
+    assert options.as_dict()["response"] == str(tmp_path / "sensitivity.yaml")
 
 
 def test_the_python_api_writes_what_the_cli_writes(inputs, tmp_path: Path) -> None:

@@ -166,3 +166,51 @@ def test_weight_patches_take_a_count_or_origins() -> None:
     assert result.log["weights"]["patches"] == [[0, 0], [0, 16]]
     with pytest.raises(OptionError, match="weight_patches is 0; expected a whole number ≥ 1"):
         ReconstructOptions(**BASE, weight_patches=0)
+
+
+def test_the_response_is_taken_in_every_form_the_ecosystem_uses(tmp_path) -> None:
+    """A dataset name, colour-science's own distributions (all three channels, or one
+    SpectralDistribution per channel), a CSV, (wavelengths, values) and Spectra give the
+    same response and the same reconstruction; the name is what the options record."""
+    import colour
+
+    from labkit.spectra import write_response_csv
+
+    dataset = colour.MSDS_CAMERA_SENSITIVITIES[RESPONSE]
+    csv = tmp_path / "response.csv"
+    write_response_csv(RESPONSE_RGB, csv)
+    forms = {
+        "name": RESPONSE,
+        "msds": dataset,
+        "three sds": [dataset.signals[label].copy() for label in dataset.labels],
+        "arrays": (RESPONSE_RGB.wavelengths, RESPONSE_RGB.values),
+        "csv": csv,
+    }
+    reference = reconstruct(_raw(), **BASE, weights="fixed:0.01", patch_px=16)
+    for form, response in forms.items():
+        options = ReconstructOptions(cfa="GBRG", response=response)
+        assert options.response.labels == ("R", "G", "B"), form
+        np.testing.assert_allclose(options.response.wavelengths, RESPONSE_RGB.wavelengths)
+        np.testing.assert_allclose(options.response.values, RESPONSE_RGB.values, rtol=1e-5)
+        result = reconstruct(_raw(), options, weights="fixed:0.01", patch_px=16)
+        np.testing.assert_allclose(result.spectral, reference.spectral, rtol=1e-4, atol=1e-7)
+    assert ReconstructOptions(cfa="GBRG", response=RESPONSE).as_dict()["response"] == RESPONSE
+    assert ReconstructOptions(cfa="GBRG", response=dataset).as_dict()["response"] == "in memory"
+
+
+@pytest.mark.parametrize(
+    ("response", "match"),
+    [
+        (42, "cannot be made from int"),
+        ("No Such Camera", "unknown camera response"),
+        ((np.arange(10.0), np.ones((10, 2))), r"shape \(n, 3\)"),
+        ((np.arange(10.0), -np.ones((10, 3))), "≥ 0"),
+    ],
+    ids=["number", "unknown-name", "two-channels", "negative"],
+)
+def test_a_response_that_cannot_serve_is_a_labkit_error(response, match) -> None:
+    with pytest.raises(OptionError, match=match) as info:
+        reconstruct(_raw(), cfa="GBRG", response=response)
+    assert isinstance(info.value, DataError) and info.value.message(CLI_NAMES).startswith(
+        "--response"
+    )
