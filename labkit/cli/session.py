@@ -26,16 +26,21 @@ def register(commands: Commands) -> None:
     show.set_defaults(handler=_show)
     imp = actions.add_parser(
         "import",
-        help="build a session from TIFF frames saved by other software",
-        description="Match the TIFF files of FOLDER against --pattern (fields {scene}, "
-        "{illumination}, {exposure} with unit, {replicate}; other {names} and * match "
-        "anything) and store them as a labkit session. Example for FlyCapture-style names "
+        help="build a session from TIFF frames or camera raw files (DNG, NEF, CR2, …)",
+        description="Match the TIFF and camera raw files (DNG, NEF, CR2, CR3, ARW, … read "
+        "by LibRaw) of FOLDER against --pattern (fields {scene}, {illumination}, {exposure} "
+        "with unit, {replicate}; other {names} and * match anything) and store them as a "
+        "labkit session. Example for FlyCapture-style names "
         "d1_disks32cmV2_450nm_100ms_2019-02-08-174831-0004.tif: --pattern "
         "'d1_{scene}_{illumination}_{exposure}_{date}-{replicate}.tif' --pattern "
-        "'d1_dark_{exposure}_{date}-{replicate}.tif'. Each frame's bit depth, "
+        "'d1_dark_{exposure}_{date}-{replicate}.tif'. A TIFF frame's bit depth, "
         "justification and saturation level are read from its data and the rig's pixel "
-        "format (8-bit files: 255; 16-bit files: N-bit data right- or left-justified) and "
-        "recorded in the manifest; --bits, --saturation and --black-level override them.",
+        "format (8-bit files: 255; 16-bit files: N-bit data right- or left-justified); "
+        "--bits, --saturation and --black-level override them. A camera raw file brings "
+        "its black and white levels (checked against its data) and its exposure time, so "
+        "its pattern may leave {exposure} out, e.g. --pattern '{scene}_{illumination}_*.NEF' "
+        "--pattern 'dark_*.NEF'; its CFA layout must be the rig's. The levels are recorded "
+        "in the manifest.",
     )
     imp.add_argument("session", type=Path, help="new session folder")
     imp.add_argument(
@@ -44,7 +49,7 @@ def register(commands: Commands) -> None:
         type=Path,
         action="append",
         required=True,
-        help="folder of TIFFs (repeatable, e.g. the frames and the darks)",
+        help="folder of TIFF or camera raw files (repeatable, e.g. the frames and the darks)",
     )
     imp.add_argument(
         "--pattern",

@@ -27,6 +27,7 @@ otherwise).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from importlib.metadata import version
 from pathlib import Path
 from typing import Any
@@ -290,9 +291,46 @@ def _refuse_colour(path: Path, kind: str) -> None:
 
 
 # -- camera raw files (LibRaw) ----------------------------------------------------------
-def _read_camera_raw(path: Path, cfa: str | None, cfa_from: str) -> RawImage:
+@dataclass(frozen=True)
+class CameraRawCounts:
+    """The sensor counts of a camera raw file and the levels and exposure it records.
+
+    Attributes
+    ----------
+    counts : ndarray (rows, cols) uint16
+        The visible area's values, DN, black level included.
+    cfa : str
+        Bayer layout of the visible area's top-left 2×2 block.
+    black_levels : ndarray (2, 2) float
+        Black level of each 2×2 CFA position, DN.
+    white_level : float
+        Saturation, DN.
+    exposure_s : float or None
+        Exposure time from the file's metadata, s (None where it records none).
+    source : dict
+        Reader, visible area and camera names, for provenance.
+    """
+
+    counts: np.ndarray
+    cfa: str
+    black_levels: np.ndarray
+    white_level: float
+    exposure_s: float | None
+    source: dict[str, Any]
+
+
+def read_camera_raw_counts(path: str | Path) -> CameraRawCounts:
+    """Read a camera raw file's Bayer counts and levels with LibRaw (rawpy).
+
+    Raises
+    ------
+    DataError
+        Not a file LibRaw reads, not a 2×2 RGB Bayer mosaic (X-Trans, Foveon, demosaiced
+        DNGs), or broken levels (white not above black).
+    """
     import rawpy
 
+    path = Path(path)
     try:
         with rawpy.imread(str(path)) as raw:
             kind = raw.raw_type
@@ -311,26 +349,12 @@ def _read_camera_raw(path: Path, cfa: str | None, cfa_from: str) -> RawImage:
                     "mosaic"
                 )
             colours = raw.raw_colors_visible
-            values = raw.raw_image_visible
+            counts = np.array(raw.raw_image_visible, dtype=np.uint16)
             black = np.asarray(raw.black_level_per_channel, dtype=np.float64)
             white = float(raw.white_level)
             shutter = float(raw.other.shutter_speed)
             sizes = raw.sizes
             layout = _libraw_layout(path, colours, description)
-            levels = black[colours[:2, :2]]
-            span = white - black
-            if np.any(span[np.unique(colours[:2, :2])] <= 0):
-                raise DataError(
-                    f"{path}: white level {white:g} is not above the black levels "
-                    f"{levels.tolist()}; the file's levels are broken"
-                )
-            # (raw − black[c]) / (white − black[c]) per 2×2 CFA position (float64, one rounding)
-            image = np.empty(values.shape, np.float32)
-            for row in (0, 1):
-                for col in (0, 1):
-                    colour = colours[row, col]
-                    part = (values[row::2, col::2] - black[colour]) / span[colour]
-                    image[row::2, col::2] = np.maximum(part, 0.0)
     except rawpy.LibRawError as error:
         detail = error.args[0] if error.args else error
         if isinstance(detail, bytes):
@@ -339,6 +363,12 @@ def _read_camera_raw(path: Path, cfa: str | None, cfa_from: str) -> RawImage:
             f"{path} is not a camera raw image LibRaw can read (LibRaw: {detail}); give a "
             "camera raw file, a raw EXR or a single-channel TIFF/PNG mosaic"
         ) from None
+    levels = black[colours[:2, :2]]
+    if np.any(white - levels <= 0):
+        raise DataError(
+            f"{path}: white level {white:g} is not above the black levels "
+            f"{levels.ravel().tolist()}; the file's levels are broken"
+        )
     source = {
         "file": str(path),
         "reader": f"LibRaw {'.'.join(map(str, rawpy.libraw_version))} (rawpy {version('rawpy')})",
@@ -346,22 +376,38 @@ def _read_camera_raw(path: Path, cfa: str | None, cfa_from: str) -> RawImage:
         "colours": description,
         "black_levels": levels.tolist(),
         "white_level": white,
-        "scale": "(value - black[c]) / (white - black[c]), clipped below at 0",
         "visible_area": {
             "top": int(sizes.top_margin),
             "left": int(sizes.left_margin),
-            "rows": int(values.shape[0]),
-            "cols": int(values.shape[1]),
+            "rows": int(counts.shape[0]),
+            "cols": int(counts.shape[1]),
             "sensor_rows": int(sizes.raw_height),
             "sensor_cols": int(sizes.raw_width),
         },
         **_camera_names(path),
     }
+    # LibRaw keeps the exposure time as a float32: 7 significant digits
+    exposure = float(f"{shutter:.7g}") if np.isfinite(shutter) and shutter > 0 else None
+    return CameraRawCounts(counts, layout, levels, white, exposure, source)
+
+
+def _read_camera_raw(path: Path, cfa: str | None, cfa_from: str) -> RawImage:
+    found = read_camera_raw_counts(path)
+    # (raw − black) / (white − black) per 2×2 CFA position (float64, one rounding)
+    image = np.empty(found.counts.shape, np.float32)
+    for row in (0, 1):
+        for col in (0, 1):
+            black = found.black_levels[row, col]
+            part = (found.counts[row::2, col::2] - black) / (found.white_level - black)
+            image[row::2, col::2] = np.maximum(part, 0.0)
+    source = {
+        **found.source,
+        "scale": "(value - black[c]) / (white - black[c]), clipped below at 0",
+    }
     return RawImage(
         raw=image,
-        cfa=_layout(path, layout, cfa, cfa_from),
-        # LibRaw keeps the exposure time as a float32: 7 significant digits
-        exposure_s=float(f"{shutter:.7g}") if np.isfinite(shutter) and shutter > 0 else None,
+        cfa=_layout(path, found.cfa, cfa, cfa_from),
+        exposure_s=found.exposure_s,
         illumination="",
         labkit={"source": source},
     )

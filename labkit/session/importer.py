@@ -1,4 +1,5 @@
-"""Build a session from frames saved by other software (e.g. FlyCapture).
+"""Build a session from frames saved by other software (e.g. FlyCapture), or from a
+camera's own raw files (DNG, NEF, CR2, CR3, ARW, …, read by LibRaw).
 
 File names are matched against patterns with named fields, e.g.
 ``d1_{scene}_{illumination}_{exposure}_{date}-{replicate}.tif`` for
@@ -6,11 +7,16 @@ File names are matched against patterns with named fields, e.g.
 ``illumination`` (a rig slot name, or its filter's centre such as ``450nm``; ``dark``
 for dark frames), ``exposure`` (with a unit: ``us``, ``ms`` or ``s``) and ``replicate``
 (an integer); any other ``{name}`` matches anything, ``*`` too. A pattern without
-``{illumination}`` describes dark frames, which every scene of the session shares.
+``{illumination}`` describes dark frames, which every scene of the session shares. A
+camera raw file records its exposure time, so its pattern may leave out ``{exposure}``;
+where the name gives one too, the two must agree.
 
-Each frame's bit depth, justification, saturation and black level are decided from its
-data and the rig's pixel format (:mod:`labkit.session.sample_format`) and recorded in
-its manifest record, so that ``labkit hdr`` knows the levels of the stored counts.
+A TIFF frame's bit depth, justification, saturation and black level are decided from its
+data and the rig's pixel format (:mod:`labkit.session.sample_format`); a camera raw
+file's come from the file (its black level per CFA position and white level), checked
+against its data. Either way they are recorded in the frame's manifest record, so that
+``labkit hdr`` knows the levels of the stored counts. A raw file's CFA layout must be the
+rig's.
 """
 
 from __future__ import annotations
@@ -23,13 +29,20 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import tifffile
 
 from labkit.errors import ConfigError, DataError
 from labkit.frame import DARK, Frame, FrameKey, path_name_problem
+from labkit.io.mosaic import CAMERA_RAW_SUFFIXES, CameraRawCounts, read_camera_raw_counts
 from labkit.io.output_folder import check_output_folder, staged_output_folder
 from labkit.rig import Rig
-from labkit.session.sample_format import SampleFacts, decide_formats, stored_samples
+from labkit.session.sample_format import (
+    SampleFacts,
+    SampleFormat,
+    decide_formats,
+    stored_samples,
+)
 from labkit.session.store import Session
 
 _FIELD = re.compile(r"\{(\w+)\}")
@@ -40,6 +53,12 @@ _FIELD_REGEX = {
 _BARE_EXPOSURE = r"(?P<exposure>\d+(?:\.\d*)?(?:[eE][-+]?\d+)?)"  # no unit: a hint only
 _UNITS = {"us": 1e-6, "µs": 1e-6, "ms": 1e-3, "s": 1.0}
 _OPEN_WORDS = {"unfiltered", "open", "none", "white", "nofilter", "no-filter", "rgb"}
+TIFF_SUFFIXES = (".tif", ".tiff")
+#: Files ``session import`` reads: TIFF frames and camera raw files.
+IMPORT_SUFFIXES = TIFF_SUFFIXES + CAMERA_RAW_SUFFIXES
+#: A raw file's recorded exposure and the one its name gives may differ this much (relative):
+#: cameras record nominal shutter speeds (1/250 s), names round them (4ms).
+EXPOSURE_AGREEMENT = 0.02
 
 
 @dataclass(frozen=True)
@@ -65,8 +84,6 @@ def compile_pattern(pattern: str) -> re.Pattern[str]:
         parts.append(_FIELD_REGEX.get(name, rf"(?P<{name}>.+?)"))
         position = match.end()
     parts.append(_literal(pattern[position:]))
-    if "exposure" not in seen:
-        raise ConfigError(f"pattern {pattern!r} needs an {{exposure}} field, e.g. _{{exposure}}_")
     return re.compile("".join(parts) + r"\Z")
 
 
@@ -143,7 +160,8 @@ def match_files(
     rig: Rig,
     mapping: Mapping[str, str] | None = None,
 ) -> tuple[list[ImportedFile], list[Path]]:
-    """Match the TIFF files of `folders`; returns (matched with keys, unmatched)."""
+    """Match the TIFF and camera raw files of `folders`; returns (matched with keys,
+    unmatched)."""
     folders = [folders] if isinstance(folders, Path) else list(folders)
     regexes = [compile_pattern(p) for p in patterns]
     resolve = illumination_resolver(rig, mapping)
@@ -151,7 +169,7 @@ def match_files(
     claimed: dict[tuple, Path] = {}  # (scene, illumination, exposure, replicate) given in names
     unmatched: list[Path] = []
     files = sorted(
-        p for folder in folders for p in folder.iterdir() if p.suffix.lower() in (".tif", ".tiff")
+        p for folder in folders for p in folder.iterdir() if p.suffix.lower() in IMPORT_SUFFIXES
     )
     for path in files:
         for regex in regexes:
@@ -173,7 +191,7 @@ def match_files(
                 f"{path.name}: the pattern gives scene {scene!r}, which cannot name a folder "
                 f"({why}); rename the file or use a --pattern that gives a plain name"
             )
-        exposure = parse_exposure(fields["exposure"])
+        exposure = _exposure_of(path, fields.get("exposure"))
         replicate = int(fields.get("replicate") or 0)
         if fields.get("replicate") is not None:  # a name that gives its replicate: one file each
             key = (scene, illumination, exposure, replicate)
@@ -194,6 +212,39 @@ def match_files(
     return matched, unmatched
 
 
+def _exposure_of(path: Path, text: str | None) -> float:
+    """The exposure a file name gives, else the one a camera raw file records."""
+    if text is not None:
+        return parse_exposure(text)
+    if path.suffix.lower() in CAMERA_RAW_SUFFIXES:
+        recorded = _recorded_exposure(path)
+        if recorded is not None:
+            return recorded
+        why = "its metadata records none"
+    else:
+        why = "a TIFF frame records none"
+    raise DataError(
+        f"{path.name}: the pattern gives no {{exposure}} and {why}; name the files with it "
+        "and put {exposure} in --pattern (e.g. _{exposure}_ for _100ms_)"
+    )
+
+
+def _recorded_exposure(path: Path) -> float | None:
+    """A camera raw file's exposure time, s, from its metadata alone (no pixels read)."""
+    import rawpy
+
+    raw = rawpy.RawPy()
+    try:
+        raw.open_file(str(path))
+        shutter = float(raw.other.shutter_speed)
+    except rawpy.LibRawError:
+        return None  # read_camera_raw_counts says why when the file is read
+    finally:
+        raw.close()
+    # LibRaw keeps the exposure time as a float32: 7 significant digits
+    return float(f"{shutter:.7g}") if np.isfinite(shutter) and shutter > 0 else None
+
+
 def import_session(
     folder: str | Path,
     source: str | Path | Sequence[str | Path],
@@ -206,14 +257,15 @@ def import_session(
     black_level: float | None = None,
     progress=None,
 ) -> tuple[Session, list[Path]]:
-    """Create a session in `folder` from the TIFF frames in `source` (one or more folders).
+    """Create a session in `folder` from the TIFF frames or camera raw files in `source`
+    (one or more folders).
 
     Parameters
     ----------
     folder : path
         The new session folder.
     source : path or sequence of paths
-        Folders of TIFF files (e.g. the frames and a folder of darks).
+        Folders of TIFF or camera raw files (e.g. the frames and a folder of darks).
     patterns : sequence of str
         File-name patterns (see the module docstring); the first that matches wins.
     rig : Rig
@@ -221,8 +273,9 @@ def import_session(
     mapping : mapping, optional
         Illumination texts of the file names → rig slot names.
     bits, saturation, black_level : optional
-        Overrides of the levels decided from the data: right-justified data of `bits`
-        bits, or the saturation level (DN); the black level (DN, default 0).
+        Overrides of the levels decided from a TIFF's data: right-justified data of `bits`
+        bits, or the saturation level (DN); the black level (DN, default 0). Camera raw
+        files carry their own levels.
     progress : callable, optional
         Called with 1 after each stored frame.
 
@@ -234,8 +287,10 @@ def import_session(
     Raises
     ------
     DataError
-        No file matches, a file is not a 2-D mosaic, or the files' levels cannot be
-        decided (:func:`labkit.session.sample_format.decide_formats`). Nothing is written:
+        No file matches, a file is not a 2-D mosaic, the files' levels cannot be
+        decided (:func:`labkit.session.sample_format.decide_formats`), or a camera raw
+        file's levels, CFA layout or exposure contradict its data, the rig or its name.
+        Nothing is written:
         the session is built in a staging folder and put in place when complete, so an
         import that fails (a full disk, Ctrl-C) leaves no half-built session behind.
     """
@@ -255,7 +310,7 @@ def import_session(
         seen[folder_in.resolve()] = folder_in
     matched, unmatched = match_files(sources, patterns, rig, mapping)
     if not matched:
-        example = unmatched[0].name if unmatched else "(no .tif files)"
+        example = unmatched[0].name if unmatched else "(no .tif or camera raw files)"
         where = ", ".join(str(s) for s in sources)
         unitless = _unitless_exposure(unmatched, patterns)
         if unitless:
@@ -270,7 +325,16 @@ def import_session(
         )
     images = {}
     facts: dict[Path, SampleFacts] = {}
+    raw_formats: dict[Path, SampleFormat] = {}
+    raw_facts: dict[Path, dict[str, Any]] = {}
     for item in matched:  # read all first: a bad file must not leave a half-built session
+        if item.path.suffix.lower() in CAMERA_RAW_SUFFIXES:
+            found = read_camera_raw_counts(item.path)
+            _check_camera_raw(item, found, rig)
+            images[item.path], raw_formats[item.path], raw_facts[item.path] = _raw_levels(
+                found, item.path
+            )
+            continue
         try:
             image = tifffile.imread(item.path)
         except Exception as error:  # tifffile raises many types on bad files
@@ -286,13 +350,15 @@ def import_session(
             f"{odd} is {_size(images[odd].shape)} but most frames are {_size(common)}; the "
             "frames of one session come from one sensor: move the odd files out of --from"
         )
-    formats = decide_formats(
-        facts,
-        pixel_format=rig.camera.pixel_format,
-        bits=bits,
-        saturation=saturation,
-        black_level=black_level,
-    )
+    formats: dict[Path, SampleFormat] = dict(raw_formats)
+    if facts:
+        formats |= decide_formats(
+            facts,
+            pixel_format=rig.camera.pixel_format,
+            bits=bits,
+            saturation=saturation,
+            black_level=black_level,
+        )
     origin = [str(s.resolve()) for s in sources]
     check_output_folder(  # an earlier import is replaced as a whole; a capture is refused
         folder, option="session folder", command="labkit session import", inputs=sources
@@ -306,7 +372,7 @@ def import_session(
             imported_from=origin[0] if len(origin) == 1 else origin,
             import_patterns=list(patterns),
         )
-        _store_all(session, matched, images, facts, formats, rig, progress)
+        _store_all(session, matched, images, facts, raw_facts, formats, rig, progress)
         session.set_status("imported")
     return Session.open(folder), unmatched
 
@@ -316,6 +382,7 @@ def _store_all(
     matched: list[ImportedFile],
     images: dict[Path, Any],
     facts: dict[Path, SampleFacts],
+    raw_facts: dict[Path, dict[str, Any]],
     formats: dict[Path, Any],
     rig: Rig,
     progress: Any,
@@ -334,12 +401,87 @@ def _store_all(
             host_timestamp_s=os.stat(item.path).st_mtime,
             extra={"saturation_dn": chosen.saturation_dn, "black_level": chosen.black_level_dn},
         )
+        source = (
+            {"source_dtype": facts[item.path].container}
+            if item.path in facts
+            else raw_facts[item.path]
+        )
         session.store(
-            item.key,
-            frame,
-            source_file=item.path.name,
-            source_dtype=facts[item.path].container,
-            **chosen.manifest_facts(),
+            item.key, frame, source_file=item.path.name, **source, **chosen.manifest_facts()
         )
         if progress:
             progress(1)
+
+
+def _check_camera_raw(item: ImportedFile, found: CameraRawCounts, rig: Rig) -> None:
+    """A raw file's CFA layout must be the rig's; its recorded exposure, where the name
+    gives one too, the name's."""
+    if found.cfa != rig.cfa:
+        raise DataError(
+            f"{item.path}: its CFA layout is {found.cfa} but the rig's camera "
+            f"({rig.camera.pixel_format}) is {rig.cfa}; give the rig of the camera that took "
+            "it (--rig), with camera.pixel_format of its layout"
+        )
+    recorded, named = found.exposure_s, item.key.exposure_s
+    if recorded is not None and abs(recorded / named - 1) > EXPOSURE_AGREEMENT:
+        raise DataError(
+            f"{item.path}: its name gives {named:g} s but the file records {recorded:g} s; "
+            "rename the file, or leave {exposure} out of --pattern to use the recorded time"
+        )
+
+
+def _raw_levels(
+    found: CameraRawCounts, path: Path
+) -> tuple[np.ndarray, SampleFormat, dict[str, Any]]:
+    """Counts with one black level for every CFA position, their format, and the facts
+    the manifest records about the file.
+
+    The merge subtracts one black level (or the dark frames); where the file records
+    different ones per CFA position, each position's counts are lowered by its excess over
+    the smallest (whole DN, lossless), and saturation is the lowest position's. The levels
+    are checked against the data: no count above the white level, and the black level
+    not above a large part of the data (a dark frame's counts scatter about it).
+    """
+    counts, black, white = found.counts, found.black_levels, found.white_level
+    if int(counts.max()) > white:
+        raise DataError(
+            f"{path}: counts reach {int(counts.max())} DN, above the file's white level "
+            f"{white:g}; its levels are wrong: convert it again with the camera maker's "
+            "software, or import TIFFs with --saturation"
+        )
+    span = white - black.max()
+    below = 0
+    for row in (0, 1):
+        for col in (0, 1):
+            plane = counts[row::2, col::2]
+            below += int(np.count_nonzero(plane < black[row, col] - 0.05 * span))
+    if below > 0.01 * counts.size:
+        raise DataError(
+            f"{path}: {below} of its {counts.size} counts lie well below its black levels "
+            f"{black.tolist()} DN; the file's levels disagree with its data"
+        )
+    floor = float(black.min())
+    excess = np.rint(black - floor).astype(np.int64)
+    if excess.any():
+        counts = counts.astype(np.int64)
+        for row in (0, 1):
+            for col in (0, 1):
+                counts[row::2, col::2] -= excess[row, col]
+        counts = np.clip(counts, 0, None).astype(np.uint16)
+    saturation = float(white - excess.max())
+    bits = max(1, int(np.ceil(np.log2(white + 1))))
+    chosen = SampleFormat(
+        bits=bits,
+        justification="native",
+        saturation_dn=saturation,
+        black_level_dn=floor,
+        reason="camera raw file: black and white levels recorded in the file (LibRaw)",
+    )
+    record = {
+        "source_format": "camera raw",
+        "source_black_levels": black.tolist(),
+        "source_white_level": white,
+        "source_exposure_s": found.exposure_s,
+        **{key: value for key, value in found.source.items() if key.startswith("camera_")},
+    }
+    return counts, chosen, record

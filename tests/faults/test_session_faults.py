@@ -149,6 +149,14 @@ def _import(w: Path, source: Path, *extra: object, session: str = "I") -> list:
             "--pattern", PATTERN, "--no-progress", *extra]  # fmt: skip
 
 
+def _unmatched(w: Path) -> Path:
+    """Frames named so that no pattern matches them."""
+    source = _source(w)
+    for number, path in enumerate(sorted(source.iterdir())):
+        path.rename(source / f"frame{number:04d}.tif")
+    return source
+
+
 def _hostile(name):
     def make(w):
         source = _source(w)
@@ -182,7 +190,7 @@ def _mixed_sizes(w):
 IMPORT_CASES = {
     "a scene escaping by name": (_hostile(".._unfiltered_3ms_0009.tif"), [], [".."]),
     "an illumination escaping": (_hostile("disks_..%2f_3ms_0009.tif"), [], ["..%2f"]),
-    "nothing matches": (lambda w: _source(w), ["--pattern", "x_{scene}.png"], ["x_{scene}.png"]),
+    "nothing matches": (_unmatched, [], ["check --pattern", "frame0000.tif"]),
     "a source that is missing": (lambda w: w / "nowhere", [], ["nowhere"]),
     "a binary TIFF": (_binary_tiff, [], ["disks_"]),
     "an RGB TIFF": (_rgb_tiff, [], ["disks_"]),
