@@ -31,6 +31,9 @@ COMMANDS: dict[str, Command] = {
     "hdr": Command(
         "labkit.cli.hdr", "merge exposure brackets into HDR raw mosaics (thesis Algorithm 11)"
     ),
+    "target": Command(
+        "labkit.cli.target", "a printable disk chart for dispersion calibration (SVG + PDF)"
+    ),
     "calibrate": Command("labkit.cli.calibrate", "calibrate the camera and lens from HDR images"),
     "synthesize": Command(
         "labkit.cli.synthesize",

@@ -153,6 +153,14 @@ def _register_dispersion(actions: argparse._SubParsersAction) -> None:
         "--seed", type=non_negative_int, default=2019, help="cross-validation seed, ≥ 0"
     )
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    parser.add_argument(
+        "--target",
+        type=Path,
+        default=None,
+        help="the chart.yaml of `labkit target`: say whether the shot's disks measure the "
+        "radius and pitch the chart was made for (else the camera stands at another "
+        "distance than the chart's)",
+    )
     parser.add_argument("--out", type=Path, required=True, help="model YAML to write")
     parser.set_defaults(handler=_dispersion)
 
@@ -277,6 +285,20 @@ def read_mask(path: Path):
     return data != 0
 
 
+def _check_against_chart(target: Path, images: list, reference: str) -> None:
+    """Print how the reference image's disks measure against the chart's design, and a
+    warning that says what to do where they are off."""
+    from calibration.disks.chart import check_shot, load_chart_yaml
+
+    design = load_chart_yaml(target)
+    wanted = "unfiltered" if reference.upper() in ("R", "G", "B") else reference
+    image = next((i for i in images if i.illumination == wanted), images[0])
+    check = check_shot(image.raw, design, cfa=image.cfa, name=f"{image.illumination} image")
+    print(check.describe())
+    if check.problem:
+        print(f"warning: {check.problem}")
+
+
 def _dispersion(args: argparse.Namespace) -> int:
     import numpy as np
 
@@ -313,6 +335,8 @@ def _dispersion(args: argparse.Namespace) -> int:
     print(band_table(result))
     for warning in result.warnings:
         print(f"warning: {warning}")
+    if args.target is not None:
+        _check_against_chart(args.target, images, args.reference)
     with staged_output_files(outputs, command="labkit calibrate dispersion") as staged:
         result.model.save(staged[0])
         result.keypoints.to_csv(staged[1])

@@ -42,6 +42,26 @@ def hdr_folder(tmp_path_factory: pytest.TempPathFactory, sim_rig_path: Path):
     return rig_file, folder / "hdr"
 
 
+def test_calibrate_dispersion_checks_the_shot_against_the_chart(hdr_folder, tmp_path, capsys):
+    """The simulated chart has 8 px disks 32 px apart: a chart made for that passes, one made
+    for 14 px disks 64 px apart is named as shot from 2× farther (a warning; the model is
+    still written)."""
+    rig_file, hdr = hdr_folder
+    for radius, pitch, warned in ((8, 32, False), (14, 64, True)):
+        chart = tmp_path / f"chart{radius}"
+        assert main(["target", "--out", str(chart), "--pixel-um", "3.45", "--focal-mm", "8",
+                     "--distance-m", "0.3", "--radius-px", str(radius), "--pitch-px",
+                     str(pitch)]) == 0  # fmt: skip
+        capsys.readouterr()
+        out = tmp_path / f"model{radius}.yaml"
+        assert main(["calibrate", "dispersion", str(hdr), "--rig", str(rig_file), "--out",
+                     str(out), "--workers", "1", "--no-plots",
+                     "--target", str(chart / "chart.yaml")]) == 0  # fmt: skip
+        printed = capsys.readouterr().out
+        assert "disks in the shot: radius " in printed and out.is_file()
+        assert ("2.00× farther from the chart" in printed) is warned, printed
+
+
 def test_calibrate_dispersion_eval_and_warp(hdr_folder, tmp_path: Path, capsys):
     rig_file, hdr = hdr_folder
     out = tmp_path / "model.yaml"
