@@ -12,29 +12,15 @@ import sys
 from pathlib import Path
 
 import pytest
+from _snippets import blocks, command_lines, run_marked
 
 from labkit.cli import build_parser
 
-RUN_MARK = "<!-- readme-test: run -->"
 MAX_LINES = 200
-
-
-def _blocks(text: str) -> list[tuple[str, str, bool]]:
-    """Every fenced code block: (language, code, marked to run)."""
-    found = re.finditer(
-        r"(?P<mark>" + re.escape(RUN_MARK) + r"\n)?```(?P<lang>\w*)\n(?P<code>.*?)```", text, re.S
-    )
-    return [(m["lang"], m["code"], m["mark"] is not None) for m in found]
 
 
 def _prose(text: str) -> str:
     return re.sub(r"```.*?```", "", text, flags=re.S)
-
-
-def _command_lines(code: str) -> list[list[str]]:
-    """The shell command lines of a block, continuation lines joined, comments dropped."""
-    joined = code.replace("\\\n", " ")
-    return [shlex.split(line, comments=True) for line in joined.splitlines() if line.strip()]
 
 
 @pytest.fixture(scope="module")
@@ -58,9 +44,9 @@ def test_every_labkit_command_line_in_the_readme_parses(readme: str) -> None:
     parser = build_parser()
     commands = [
         words
-        for lang, code, _ in _blocks(readme)
+        for lang, code, _ in blocks(readme)
         if lang == "sh"
-        for words in _command_lines(code)
+        for words in command_lines(code)
         if words and words[0] == "labkit"
     ]
     assert len(commands) >= 10, commands
@@ -77,20 +63,10 @@ def test_the_readme_walkthrough_runs_as_written(
     """The marked blocks: the simulated rig's capture → HDR → calibration → reconstruction,
     then the Python reconstruction of the same image. Each command must succeed and leave
     the files the README says it writes."""
-    marked = [(lang, code) for lang, code, run in _blocks(readme) if run]
-    assert [lang for lang, _ in marked] == ["sh", "python"], marked
-    (tmp_path / "rigs").symlink_to(repo_root / "rigs")
+    marked = [lang for lang, _, run in blocks(readme) if run]
+    assert marked == ["sh", "python"], marked
+    run_marked(readme, tmp_path, repo_root, what="README")
     env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}")
-    for lang, code in marked:
-        argv = (
-            ["bash", "-euo", "pipefail", "-c", code]
-            if lang == "sh"
-            else [sys.executable, "-c", code]
-        )
-        done = subprocess.run(
-            argv, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600
-        )
-        assert done.returncode == 0, f"README {lang} block failed:\n{code}\n{done.stderr[-3000:]}"
     for name in ("spectral.exr", "raw_colour.exr", "preview.png", "log.json"):
         assert (tmp_path / "recon" / name).is_file(), name
         assert (tmp_path / "recon-python" / name).is_file(), name

@@ -22,7 +22,12 @@ from labkit.session.importer import import_session
 from labkit.sim import SimCamera, SimulatedRig
 
 SHAPE = (96, 128)
-BRACKETS = {"unfiltered": (0.004, 0.016), "450": (0.025, 0.1), "550": (0.02, 0.08), "650": (0.2, 0.8)}
+BRACKETS = {
+    "unfiltered": (0.004, 0.016),
+    "450": (0.025, 0.1),
+    "550": (0.02, 0.08),
+    "650": (0.2, 0.8),
+}
 BLACK, WHITE = 32, 4032  # the simulated camera's levels (12-bit, black level 32)
 
 
