@@ -16,12 +16,12 @@ def register(commands: Commands) -> None:
         "frames) → HDR → dispersion calibration → reconstruction of the ColorChecker and "
         "textured scenes → evaluation against the simulator's truth and the baselines → "
         "DIR/report.html and report.md (previews, dispersion plots, crops, spectra, tables, "
-        "timings) and DIR/results.json. About 5 minutes on 2 cores; --quick: under 2. "
+        "timings) and DIR/results.json; --quick: a smaller sensor. "
         "With --real, the job on real frames of a ColorChecker from the thesis' lab (the "
         "vendored set, or --data DIR laid out the same way): import → HDR → sensor map → "
         "multispectral and synthetic raw images → dispersion calibration → reconstruction → "
         "patch spectra against the chart's spectrometer reflectances and residual aberration "
-        "against the demosaicing baselines; under 2 minutes on 2 cores.",
+        "against the demosaicing baselines.",
     )
     parser.add_argument("--out", type=Path, default=Path("demo-out"), help="output folder")
     parser.add_argument("--rig", type=Path, default=None, help="rig YAML (default: simulated rig; "
@@ -54,7 +54,9 @@ def _demo(args: argparse.Namespace) -> int:
     if not args.real and (args.data is not None or args.pattern):
         raise ConfigError("--data and --pattern name real captures; add --real")
     if args.real and args.quick:
-        raise ConfigError("--quick applies to the simulated demo; --real runs in under 2 minutes")
+        raise ConfigError(
+            "--quick applies to the simulated demo; --real always runs the whole vendored set"
+        )
     from labkit.io.output_folder import output_folder_in_place
 
     command = "labkit demo --real" if args.real else "labkit demo"

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 from collections.abc import Generator, Sequence
 from dataclasses import asdict, dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy import ndimage
@@ -522,13 +523,7 @@ def run_auto_bracketing(
     camera: Camera, *, bounds: Bounds, auto: AutoExposureConfig, start_s: float | None = None
 ) -> BracketChoice:
     """:func:`auto_bracketing` driven with frames grabbed from `camera`."""
-    steps = auto_bracketing(bounds, auto, start_s=start_s)
-    exposure = next(steps)
-    try:
-        while True:
-            exposure = steps.send(camera.grab(exposure, 1)[0])
-    except StopIteration as done:
-        return done.value
+    return _drive(auto_bracketing(bounds, auto, start_s=start_s), camera)
 
 
 def meter(
@@ -541,7 +536,14 @@ def meter(
     start_s: float | None = None,
 ) -> list[Frame]:
     """Metering frames grabbed from `camera` (the sequence of :func:`metering`)."""
-    steps = metering(bounds, maximum_s=maximum_s, low=low, high=high, start_s=start_s)
+    return _drive(
+        metering(bounds, maximum_s=maximum_s, low=low, high=high, start_s=start_s), camera
+    )
+
+
+def _drive(steps: Generator[float, Frame, Any], camera: Camera) -> Any:
+    """Run a generator of exposures with one frame grabbed from `camera` at each; return
+    what it returns."""
     exposure = next(steps)
     try:
         while True:
