@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from PIL import Image
@@ -118,7 +119,7 @@ class SpectralPreview:
     white_balance: str
     scene_white_xy: tuple[float, float] | None = None
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, Any]:
         """For logs: the method and the white."""
         return {"white_balance": self.white_balance, "scene_white_xy": self.scene_white_xy}
 
