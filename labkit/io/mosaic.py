@@ -386,9 +386,29 @@ def read_camera_raw_counts(path: str | Path) -> CameraRawCounts:
         },
         **_camera_names(path),
     }
-    # LibRaw keeps the exposure time as a float32: 7 significant digits
-    exposure = float(f"{shutter:.7g}") if np.isfinite(shutter) and shutter > 0 else None
-    return CameraRawCounts(counts, layout, levels, white, exposure, source)
+    return CameraRawCounts(counts, layout, levels, white, _shutter_s(shutter), source)
+
+
+def read_camera_raw_exposure(path: str | Path) -> float | None:
+    """A camera raw file's exposure time, s, from its metadata alone (no pixels are read);
+    None where it records none or LibRaw cannot open it (:func:`read_camera_raw_counts`
+    says why when the file is read)."""
+    import rawpy
+
+    raw = rawpy.RawPy()
+    try:
+        raw.open_file(str(path))
+        return _shutter_s(float(raw.other.shutter_speed))
+    except rawpy.LibRawError:
+        return None
+    finally:
+        raw.close()
+
+
+def _shutter_s(shutter: float) -> float | None:
+    """LibRaw's exposure time, s, to the 7 significant digits its float32 holds; None where
+    the file records none."""
+    return float(f"{shutter:.7g}") if np.isfinite(shutter) and shutter > 0 else None
 
 
 def _read_camera_raw(path: Path, cfa: str | None, cfa_from: str) -> RawImage:

@@ -343,6 +343,14 @@ def _worthwhile(stabs: list[int], first: np.ndarray, last: np.ndarray, least: in
     return chosen
 
 
+def _hit_counts(first: np.ndarray, last: np.ndarray, steps: Sequence[int]) -> np.ndarray:
+    """Per pixel, how many of the ladder `steps` fall in its run ``[first, last]``."""
+    hits = np.zeros(first.shape, np.int16)
+    for step in steps:
+        hits += (first <= step) & (step <= last)
+    return hits
+
+
 def _shortest(stabs: list[int], first: np.ndarray, last: np.ndarray) -> list[int]:
     """The same number of steps as `stabs`, each but the shortest moved down to the shortest
     exposure that still hits every run no other step hits (runs ``[first, last]``).
@@ -356,9 +364,7 @@ def _shortest(stabs: list[int], first: np.ndarray, last: np.ndarray) -> list[int
     a run it alone hits starts above that.
     """
     chosen = list(stabs)
-    hits = np.zeros(first.size, np.int16)
-    for step in chosen:
-        hits += (first <= step) & (step <= last)
+    hits = _hit_counts(first, last, chosen)
     for k, step in enumerate(chosen):
         if k == 0:
             continue
@@ -503,8 +509,7 @@ def auto_bracketing(
         if not new or round_ == MAX_CHECK_ROUNDS:
             break
         first, last = _runs(rate, ladder, low=low, high=high, margin=auto.margin, longest=longest)
-        steps = np.searchsorted(ladder, choice.exposures_s)
-        hits = sum(((first <= s) & (s <= last)).astype(np.int16) for s in steps)
+        hits = _hit_counts(first, last, np.searchsorted(ladder, choice.exposures_s))
         for exposure in new:
             frame = yield exposure
             checked[exposure] = frame

@@ -34,7 +34,12 @@ import tifffile
 
 from labkit.errors import ConfigError, DataError
 from labkit.frame import DARK, Frame, FrameKey, path_name_problem
-from labkit.io.mosaic import CAMERA_RAW_SUFFIXES, CameraRawCounts, read_camera_raw_counts
+from labkit.io.mosaic import (
+    CAMERA_RAW_SUFFIXES,
+    CameraRawCounts,
+    read_camera_raw_counts,
+    read_camera_raw_exposure,
+)
 from labkit.io.output_folder import check_output_folder, staged_output_folder
 from labkit.rig import Rig
 from labkit.session.sample_format import (
@@ -217,7 +222,7 @@ def _exposure_of(path: Path, text: str | None) -> float:
     if text is not None:
         return parse_exposure(text)
     if path.suffix.lower() in CAMERA_RAW_SUFFIXES:
-        recorded = _recorded_exposure(path)
+        recorded = read_camera_raw_exposure(path)
         if recorded is not None:
             return recorded
         why = "its metadata records none"
@@ -227,22 +232,6 @@ def _exposure_of(path: Path, text: str | None) -> float:
         f"{path.name}: the pattern gives no {{exposure}} and {why}; name the files with it "
         "and put {exposure} in --pattern (e.g. _{exposure}_ for _100ms_)"
     )
-
-
-def _recorded_exposure(path: Path) -> float | None:
-    """A camera raw file's exposure time, s, from its metadata alone (no pixels read)."""
-    import rawpy
-
-    raw = rawpy.RawPy()
-    try:
-        raw.open_file(str(path))
-        shutter = float(raw.other.shutter_speed)
-    except rawpy.LibRawError:
-        return None  # read_camera_raw_counts says why when the file is read
-    finally:
-        raw.close()
-    # LibRaw keeps the exposure time as a float32: 7 significant digits
-    return float(f"{shutter:.7g}") if np.isfinite(shutter) and shutter > 0 else None
 
 
 def import_session(
@@ -326,12 +315,12 @@ def import_session(
     images = {}
     facts: dict[Path, SampleFacts] = {}
     raw_formats: dict[Path, SampleFormat] = {}
-    raw_facts: dict[Path, dict[str, Any]] = {}
+    source_facts: dict[Path, dict[str, Any]] = {}  # what each frame's record says of its file
     for item in matched:  # read all first: a bad file must not leave a half-built session
         if item.path.suffix.lower() in CAMERA_RAW_SUFFIXES:
             found = read_camera_raw_counts(item.path)
             _check_camera_raw(item, found, rig)
-            images[item.path], raw_formats[item.path], raw_facts[item.path] = _raw_levels(
+            images[item.path], raw_formats[item.path], source_facts[item.path] = _raw_levels(
                 found, item.path
             )
             continue
@@ -340,6 +329,7 @@ def import_session(
         except Exception as error:  # tifffile raises many types on bad files
             raise DataError(f"{item.path} is not a readable TIFF ({error})") from None
         images[item.path], facts[item.path] = stored_samples(image, name=str(item.path))
+        source_facts[item.path] = {"source_dtype": facts[item.path].container}
     shapes: dict[tuple[int, ...], list[Path]] = {}
     for path, image in images.items():
         shapes.setdefault(image.shape, []).append(path)
@@ -372,7 +362,7 @@ def import_session(
             imported_from=origin[0] if len(origin) == 1 else origin,
             import_patterns=list(patterns),
         )
-        _store_all(session, matched, images, facts, raw_facts, formats, rig, progress)
+        _store_all(session, matched, images, source_facts, formats, rig, progress)
         session.set_status("imported")
     return Session.open(folder), unmatched
 
@@ -381,8 +371,7 @@ def _store_all(
     session: Session,
     matched: list[ImportedFile],
     images: dict[Path, Any],
-    facts: dict[Path, SampleFacts],
-    raw_facts: dict[Path, dict[str, Any]],
+    source_facts: dict[Path, dict[str, Any]],
     formats: dict[Path, Any],
     rig: Rig,
     progress: Any,
@@ -401,13 +390,12 @@ def _store_all(
             host_timestamp_s=os.stat(item.path).st_mtime,
             extra={"saturation_dn": chosen.saturation_dn, "black_level": chosen.black_level_dn},
         )
-        source = (
-            {"source_dtype": facts[item.path].container}
-            if item.path in facts
-            else raw_facts[item.path]
-        )
         session.store(
-            item.key, frame, source_file=item.path.name, **source, **chosen.manifest_facts()
+            item.key,
+            frame,
+            source_file=item.path.name,
+            **source_facts[item.path],
+            **chosen.manifest_facts(),
         )
         if progress:
             progress(1)
