@@ -347,6 +347,28 @@ class Rig(_Strict):
         """The camera's CFA layout."""
         return self.camera.cfa
 
+    def with_changes(self, changes: dict[str, Any]) -> Rig:
+        """A variant of this rig: `changes` merged into its keys, validated as a rig file is.
+
+        Parameters
+        ----------
+        changes : dict
+            Nested keys as in a rig file, e.g. ``{"sim": {"sensor": {"height": 256,
+            "width": 320}}}``; a mapping is merged key by key, any other value replaces.
+
+        Returns
+        -------
+        Rig
+            The variant, with this rig's `source`.
+
+        Raises
+        ------
+        ConfigError
+            The variant is not a valid rig; the message names the key.
+        """
+        data = _merged(self.model_dump(mode="json", exclude_unset=False), changes)
+        return rig_from_dict(data, source=self.source or "<rig>")
+
     def illuminations(self) -> list[str]:
         """Illuminations of the plan, in slider order."""
         if self.plan.illuminations == "all":
@@ -511,6 +533,16 @@ def _session_problem(data: dict[str, Any], source: str) -> str:
         f"`rig:` key — give the rig YAML the session was captured with{origin}, or save "
         "that `rig:` section as a rig file of its own"
     )
+
+
+def _merged(base: dict[str, Any], changes: dict[str, Any]) -> dict[str, Any]:
+    merged = dict(base)
+    for key, value in changes.items():
+        if isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key] = _merged(merged[key], value)
+        else:
+            merged[key] = value
+    return merged
 
 
 def rig_from_dict(data: Any, *, source: str = "<rig>") -> Rig:

@@ -416,3 +416,18 @@ def test_single_bad_exposure_reports_one_problem(
     with pytest.raises(ConfigError) as info:
         load_rig(path)
     assert "more problem" not in str(info.value), str(info.value)
+
+
+def test_a_rig_variant_is_merged_and_validated_like_a_rig_file(sim_rig_path: Path) -> None:
+    rig = load_rig(sim_rig_path)
+    small = rig.with_changes({"sim": {"sensor": {"height": 256, "width": 320}}})
+    assert (small.sim.sensor.height, small.sim.sensor.width) == (256, 320)
+    # every other key is kept, nested ones included, and the original is untouched
+    assert small.sim.sensor.full_well_e == rig.sim.sensor.full_well_e
+    assert small.sim.lens == rig.sim.lens and small.source == rig.source
+    assert rig.sim.sensor.height != 256
+    assert rig.with_changes({}).model_dump() == rig.model_dump()
+    with pytest.raises(ConfigError, match=r"sim\.sensor\.heigth .*did you mean 'height'"):
+        rig.with_changes({"sim": {"sensor": {"heigth": 256}}})
+    with pytest.raises(ConfigError, match=r"plan\.illuminations names 'violet'"):
+        rig.with_changes({"plan": {"illuminations": ["violet"]}})

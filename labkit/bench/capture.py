@@ -74,16 +74,17 @@ class ReplayCamera:
 
 
 def _storage_rig(rig: Rig, frames: int) -> Rig:
-    plan = rig.plan.model_copy(
-        update={
-            "scenes": rig.plan.scenes[:1],
-            "illuminations": rig.illuminations()[:1],
-            "exposures_s": rig.plan.exposures_s.model_copy(update={"unfiltered": [0.003]}),
-            "replicates": rig.plan.replicates.model_copy(update={"unfiltered": frames}),
-            "dark_frames": False,
+    return rig.with_changes(
+        {
+            "plan": {
+                "scenes": rig.plan.scenes[:1],
+                "illuminations": rig.illuminations()[:1],
+                "exposures_s": {"unfiltered": [0.003]},
+                "replicates": {"unfiltered": frames},
+                "dark_frames": False,
+            }
         }
     )
-    return rig.model_copy(update={"plan": plan})
 
 
 def auto_bracketing_counts(rig: Rig) -> dict[str, Any]:
@@ -182,9 +183,7 @@ def bench_capture(rig_path: str | Path, *, repeats: int = 1) -> tuple[list[Measu
         cases.append(case)
 
         # the thesis' fixed lists (ExposureConfig's defaults), whatever the rig file plans
-        thesis = rig.model_copy(
-            update={"plan": rig.plan.model_copy(update={"exposures_s": ExposureConfig()})}
-        )
+        thesis = rig.with_changes({"plan": {"exposures_s": ExposureConfig().model_dump()}})
         plan = build_plan(thesis)
         report_box: dict[str, Any] = {}
 

@@ -55,16 +55,17 @@ print(json.dumps({"seconds": seconds, "max_rss_mib": rss}))
 
 def hdr_bench_rig(rig: Rig) -> Rig:
     """The rig with a one-illumination plan: 8 exposures × 5 replicates + darks."""
-    plan = rig.plan.model_copy(
-        update={
-            "scenes": [SCENE],
-            "illuminations": ["unfiltered"],
-            "exposures_s": rig.plan.exposures_s.model_copy(update={"unfiltered": EXPOSURES_S}),
-            "replicates": rig.plan.replicates.model_copy(update={"unfiltered": REPLICATES}),
-            "dark_frames": True,
+    return rig.with_changes(
+        {
+            "plan": {
+                "scenes": [SCENE],
+                "illuminations": ["unfiltered"],
+                "exposures_s": {"unfiltered": EXPOSURES_S},
+                "replicates": {"unfiltered": REPLICATES},
+                "dark_frames": True,
+            }
         }
     )
-    return rig.model_copy(update={"plan": plan})
 
 
 def bench_hdr(

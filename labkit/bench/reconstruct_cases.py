@@ -18,7 +18,7 @@ from labkit.bench.harness import Measurement, peak_rss_mib
 from labkit.bench.real_frames import (
     patch_cost,
 )
-from labkit.rig import SCENE_OPTIONS, SimSceneConfig, load_rig
+from labkit.rig import SCENE_OPTIONS, load_rig
 
 SHAPE = (344, 408)
 VARIANT_SHAPE = (172, 204)
@@ -85,11 +85,9 @@ def simulated_case(
 
     rig = load_rig(rig_path)
     if scene not in rig.sim.scenes and scene in SCENE_OPTIONS:  # a scene type the rig lacks
-        scenes = {**rig.sim.scenes, scene: SimSceneConfig(type=scene)}
-        rig = rig.model_copy(update={"sim": rig.sim.model_copy(update={"scenes": scenes})})
+        rig = rig.with_changes({"sim": {"scenes": {scene: {"type": scene}}}})
     if max_shift_px is not None:
-        lens = rig.sim.lens.model_copy(update={"max_shift_px": float(max_shift_px)})
-        rig = rig.model_copy(update={"sim": rig.sim.model_copy(update={"lens": lens})})
+        rig = rig.with_changes({"sim": {"lens": {"max_shift_px": float(max_shift_px)}}})
     world = SimulatedRig(rig, shape=shape)
     colour = colour_truth(world, scene, illumination=illumination)
     irradiance = world.irradiance(scene, illumination).astype(np.float64)

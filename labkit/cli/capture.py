@@ -111,8 +111,9 @@ def _capture(args: argparse.Namespace) -> int:
     rig_path = args.rig or default_rig_path()
     rig = load_rig(rig_path)
     if args.shape and rig.sim is not None:
-        sensor = rig.sim.sensor.model_copy(update={"height": args.shape[0], "width": args.shape[1]})
-        rig = rig.model_copy(update={"sim": rig.sim.model_copy(update={"sensor": sensor})})
+        rig = rig.with_changes(
+            {"sim": {"sensor": {"height": args.shape[0], "width": args.shape[1]}}}
+        )
     if args.dry_run:
         return _dry_run(rig, args, build_plan, validate_plan, open_hardware)
     with writer_lock(args.session, command="labkit capture", option="--session"):
