@@ -493,10 +493,11 @@ class ReconstructOptions:
         return self.choices.exact_weights
 
     def check_image(
-        self, shape: tuple[int, int], *, where: str = "the raw image"
+        self, shape: tuple[int, int], *, where: str = "the dispersion model"
     ) -> DomainUse | None:
         """The checks that need the raw image's size `shape` (rows, cols); returns how far
-        the dispersion model's use reaches beyond its domain (:meth:`domain_use`)."""
+        the dispersion model's use reaches beyond its domain (:meth:`domain_use`). `where`
+        names the dispersion model in messages."""
         check_dispersion_model(
             self.model, shape, self.latent, where=where, correction=self.correction
         )

@@ -379,7 +379,7 @@ def merge_exposures(
                 min_pairs=min_pairs,
             )
             if pair.fallback:
-                _report_fallback(pair, proper_count, min_pairs, warnings, notes)
+                _report_fallback(pair, pair.fallback, proper_count, min_pairs, warnings, notes)
             pairs.append(pair)
             chain *= pair.ratio
             last = channel_chains[longer_s]
@@ -514,14 +514,16 @@ def merge_exposures(
 
 def _report_fallback(
     pair: PairFactor,
+    fallback: str,
     proper_count: dict[float, int],
     min_pairs: int,
     warnings: list[str],
     notes: list[str],
 ) -> None:
-    """Say why a pair's exposure-time ratio was used: a note when the scene has no light
-    level both exposures see properly (nothing could be measured; each exposure adds pixels
-    of its own), a warning when the fit had some pixels but too few, or failed."""
+    """Say why a pair's exposure-time ratio was used (`fallback`, the fit's reason): a note
+    when the scene has no light level both exposures see properly (nothing could be
+    measured; each exposure adds pixels of its own), a warning when the fit had some pixels
+    but too few, or failed."""
     both_useful = proper_count[pair.longer_s] > 0 and proper_count[pair.shorter_s] > 0
     if pair.pairs == 0 and both_useful:
         notes.append(
@@ -532,9 +534,9 @@ def _report_fallback(
     elif pair.pairs == 0:
         return  # the exposure that adds nothing has its own warning
     elif pair.pairs < min_pairs:
-        warnings.append(f"{pair.fallback}; an exposure between them would let the merge measure it")
+        warnings.append(f"{fallback}; an exposure between them would let the merge measure it")
     else:
-        warnings.append(pair.fallback or "")
+        warnings.append(fallback)
 
 
 def _check_finite(image: np.ndarray, name: str) -> None:

@@ -49,7 +49,8 @@ def grey_raw(shape=SHAPE, colour=(0.3, 0.5, 0.2)) -> np.ndarray:
                     }
                 )
             },
-            "to_reference",
+            "^the dispersion model is a from_reference model, but correction model needs a "
+            "to_reference one",
         ),
         ({"response": None}, "camera response"),
         ({"correction": "sideways"}, "unknown correction"),

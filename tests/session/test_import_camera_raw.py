@@ -53,22 +53,14 @@ def dng_brackets(tmp_path_factory: pytest.TempPathFactory, sim_rig_path: Path):
     camera.set_scene("colorchecker")
     folder = root / "card"
     folder.mkdir()
+    shots = [(illumination, t) for illumination, times in BRACKETS.items() for t in times]
+    shots += [("dark", t) for t in sorted({t for _, t in shots})]
     written: dict[str, np.ndarray] = {}
-    number = 0
-    for illumination, exposures in BRACKETS.items():
+    for illumination, exposure in shots:
         camera.set_illumination(illumination)
-        for exposure in exposures:
-            for frame in camera.grab(exposure, 3):
-                number += 1
-                name = f"colorchecker_{illumination}_IMG{number:04d}.dng"
-                write_dng(folder / name, frame.image, black=BLACK, white=WHITE,
-                          extra=(_exposure_tag(exposure),))  # fmt: skip
-                written[name] = frame.image
-    camera.set_illumination("dark")
-    for exposure in sorted({t for times in BRACKETS.values() for t in times}):
         for frame in camera.grab(exposure, 3):
-            number += 1
-            name = f"dark_IMG{number:04d}.dng"
+            prefix = "dark" if illumination == "dark" else f"colorchecker_{illumination}"
+            name = f"{prefix}_IMG{len(written) + 1:04d}.dng"
             write_dng(folder / name, frame.image, black=BLACK, white=WHITE,
                       extra=(_exposure_tag(exposure),))  # fmt: skip
             written[name] = frame.image
