@@ -26,19 +26,26 @@ demo: venv
 test: lint docs
 	$(VENV)/bin/pytest -m "not slow" $(PYTEST_ARGS)
 
-# The documentation site (docs/): API reference, command-line reference and the example
-# gallery, whose scripts run during the build (about a minute on 2 cores). Warnings are
-# errors; -E re-reads every page so that none is hidden by the cache (sphinx-gallery still
+# The documentation site (docs/): the user guide and the API tour, whose marked blocks run
+# during the build (their output goes onto the pages), the example gallery, whose scripts
+# run too, the API and command-line references, and the benchmarks page from the bench.json
+# that `make bench` published. Warnings are errors; -E re-reads every page so that none is hidden by the cache (sphinx-gallery still
 # skips examples whose script has not changed). Pages: docs/_build/html/index.html.
 docs: venv
 	$(VENV)/bin/sphinx-build -W --keep-going -E -b html docs docs/_build/html
 
 # `bench all --full`: every stage, the full-size reconstruction and the whole 256²…2048²
-# scaling sweep (about 20 minutes on 2 quiet cores). The slow tests run even when a benchmark
-# misses its target; make then fails.
+# scaling sweep, then the slow tests. Its bench.json and plots are published into
+# docs/benchmarks/, from which `make docs` builds the benchmarks page (commit them with the
+# change they measure). The slow tests run even when a benchmark misses its target; make
+# then fails.
 bench: venv
 	@status=0; \
 	$(VENV)/bin/labkit bench all --full --out $(BENCH_OUT) || status=$$?; \
+	if [ -f $(BENCH_OUT)/bench.json ]; then \
+		rm -rf docs/benchmarks && mkdir -p docs/benchmarks && \
+		cp $(BENCH_OUT)/bench.json $(BENCH_OUT)/*.png docs/benchmarks/; \
+	fi; \
 	$(VENV)/bin/pytest -m slow $(PYTEST_ARGS) || status=$$?; \
 	exit $$status
 

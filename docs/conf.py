@@ -38,6 +38,8 @@ extensions = [
     "sphinx_gallery.gen_gallery",
     "labkit_api",  # _ext/labkit_api.py: the API pages, one per public module
     "labkit_cli",  # _ext/labkit_cli.py: the command-line reference from build_parser()
+    "labkit_bench",  # _ext/labkit_bench.py: the benchmarks page from make bench's bench.json
+    "labkit_guide",  # _ext/labkit_guide.py: runs the guide's marked blocks, shows their output
     "myst_parser",  # the guide's pages and the design notes are Markdown
 ]
 source_suffix = {".rst": "restructuredtext", ".md": "markdown"}

@@ -10,11 +10,14 @@ them, so that CI cannot pass without it.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import importlib
 import inspect
+import json
 import pkgutil
 import re
 import zlib
+from html import escape as html_escape
 from pathlib import Path
 from types import ModuleType
 
@@ -154,3 +157,43 @@ def test_the_cli_reference_has_a_section_for_every_command(repo_root: Path) -> N
         options = [s for a in shown for s in a.option_strings]
         missing += [f"{command.prog} {o}" for o in options if f">{o}" not in page]
     assert not missing, f"missing from the command-line reference: {missing}"
+
+
+def test_the_guide_ran_as_written_when_the_site_was_built(repo_root: Path) -> None:
+    """The user guide's pages and the API tour ran while the site was built (a failing block
+    fails the build), the text they ran is the text of the pages now, and each page shows
+    what its blocks printed. ``guide-runs.json`` records each page's run."""
+    html = _site(repo_root)
+    runs = json.loads((html / "guide-runs.json").read_text(encoding="utf-8"))
+    expected = {"guide/simulated-rig", "guide/capture", "guide/calibration"}
+    expected |= {"guide/reconstruction", "python-api"}
+    assert expected <= set(runs), sorted(runs)
+    for page, run in runs.items():
+        assert run["blocks"] >= 1 and run["seconds"] > 0, (page, run)
+        source = (repo_root / "docs" / f"{page}.md").read_bytes()
+        assert hashlib.sha256(source).hexdigest() == run["sha256"], (
+            f"docs/{page}.md changed since the site was built: run `make docs`"
+        )
+        text = (html / f"{page}.html").read_text(encoding="utf-8")
+        assert "Output, from the build of this page" in text, page
+    tour = (html / "python-api.html").read_text(encoding="utf-8")
+    assert "frames" in tour and "patches" in tour  # what the capture and the solve printed
+
+
+def test_the_benchmarks_page_is_made_from_the_published_bench_json(repo_root: Path) -> None:
+    """Each stage and case of ``docs/benchmarks/bench.json`` is on the page, with its plots."""
+    html = _site(repo_root)
+    page = (html / "benchmarks.html").read_text(encoding="utf-8")
+    published = repo_root / "docs" / "benchmarks" / "bench.json"
+    if not published.is_file():
+        assert "No benchmark has been published" in page
+        return
+    payload = json.loads(published.read_text(encoding="utf-8"))
+    assert payload["machine"]["date"] in page
+    for stage, cases in payload["stages"].items():
+        assert f">{stage}<" in page, stage
+        for case in cases:
+            assert html_escape(case["name"]) in page, case["name"]
+    for files in payload["plots"].values():
+        for name in files:
+            assert (html / "_images" / name).is_file(), name

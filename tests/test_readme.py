@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from _snippets import blocks, command_lines, run_marked
+from snippets import blocks, command_lines, run_marked
 
 from labkit.cli import build_parser
 

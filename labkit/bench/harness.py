@@ -111,8 +111,37 @@ def machine_info() -> dict[str, Any]:
         "numpy": numpy.__version__,
         "scipy": scipy.__version__,
         "labkit": labkit.__version__,
+        "commit": _commit(Path(labkit.__file__).parent),
+        "load_average": _load_average(),
         "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
     }
+
+
+def _commit(folder: Path) -> str | None:
+    """The git commit of the checkout labkit runs from (``+`` if it has changes), or None."""
+    import subprocess
+
+    def git(*args: str) -> str:
+        done = subprocess.run(
+            ["git", *args], cwd=folder, capture_output=True, text=True, timeout=10, check=True
+        )
+        return done.stdout.strip()
+
+    try:
+        commit = git("rev-parse", "--short", "HEAD")
+        changed = bool(git("status", "--porcelain", "--untracked-files=no"))
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return commit + ("+" if changed else "")
+
+
+def _load_average() -> list[float] | None:
+    """The system's 1-, 5- and 15-minute load averages when the report is written: how busy
+    the machine was while it was measured (Unix only)."""
+    try:
+        return [round(value, 2) for value in os.getloadavg()]
+    except (AttributeError, OSError):
+        return None
 
 
 @dataclass
@@ -263,12 +292,10 @@ def render_markdown(payload: dict[str, Any]) -> str:
         The report: a table of cases per stage, that stage's notes, plots (relative image
         links) and tables under its heading, then the general notes.
     """
-    machine = payload["machine"]
     lines = [
         "# labkit benchmark",
         "",
-        f"{machine['cpu']}, {machine['cores']} cores; Python {machine['python']}, "
-        f"numpy {machine['numpy']}, labkit {machine['labkit']}; {machine['date']}.",
+        machine_line(payload["machine"]),
         "",
     ]
     stage_notes = payload.get("stage_notes", {})
@@ -284,7 +311,7 @@ def render_markdown(payload: dict[str, Any]) -> str:
             passed = m.get("passed")
             verdict = "—" if passed is None else ("pass" if passed else "**FAIL**")
             target = "—" if m.get("target_s") is None else f"{m['target_s']:g}"
-            details = ", ".join(f"{k}={_fmt(v)}" for k, v in m.get("extra", {}).items())
+            details = ", ".join(f"{k}={format_figure(v)}" for k, v in m.get("extra", {}).items())
             lines.append(
                 f"| {m['name']} | {m['seconds']:.3f} | {len(m['times'])} | {m['peak_mib']:.0f} "
                 f"| {target} | {verdict} | {details} |"
@@ -294,6 +321,17 @@ def render_markdown(payload: dict[str, Any]) -> str:
     if payload.get("notes"):
         lines += ["## Notes", "", *[f"- {note}" for note in payload["notes"]], ""]
     return "\n".join(lines)
+
+
+def machine_line(machine: dict[str, Any]) -> str:
+    """One sentence on what was measured where: a report's :func:`machine_info`."""
+    commit = f" at commit {machine['commit']}" if machine.get("commit") else ""
+    load = machine.get("load_average")
+    busy = f" (load average {load[0]:g} / {load[1]:g} / {load[2]:g} at the end)" if load else ""
+    return (
+        f"{machine['cpu']}, {machine['cores']} cores; Python {machine['python']}, "
+        f"numpy {machine['numpy']}, labkit {machine['labkit']}{commit}; {machine['date']}{busy}."
+    )
 
 
 def _render_notes(notes: list[str | dict[str, Any]]) -> list[str]:
@@ -349,13 +387,13 @@ def fit_exponent(sizes: Any, seconds: Any) -> float:
     return float(dx @ (y - y.mean()) / (dx @ dx))
 
 
-def _fmt(value: Any) -> str:
-    """A details cell's value: floats to 4 significant digits, also inside lists and
+def format_figure(value: Any) -> str:
+    """A figure as the reports print it: floats to 4 significant digits, also inside lists and
     dictionaries (a case's nested figures, e.g. its per-patch cost)."""
     if isinstance(value, float):
         return f"{value:.4g}"
     if isinstance(value, dict):
-        return "(" + ", ".join(f"{k}={_fmt(v)}" for k, v in value.items()) + ")"
+        return "(" + ", ".join(f"{k}={format_figure(v)}" for k, v in value.items()) + ")"
     if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_fmt(v) for v in value) + "]"
+        return "[" + ", ".join(format_figure(v) for v in value) + "]"
     return str(value)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 from dataclasses import asdict
 from pathlib import Path
@@ -15,6 +16,8 @@ from labkit.bench.harness import (
     Plot,
     Table,
     fit_exponent,
+    machine_info,
+    machine_line,
     render_markdown,
     repeat_timed,
     write_report,
@@ -311,3 +314,33 @@ def test_reconstruct_stage_plots_real_and_simulated_errors(tmp_path: Path) -> No
     assert len(plots) == 4 and all(isinstance(p, Plot) for p in plots)
     for plot in plots:
         assert (tmp_path / plot.file).read_bytes()[:4] == b"\x89PNG"
+
+
+def test_the_report_says_which_commit_and_how_busy_the_machine_was() -> None:
+    machine = {**KNOWN["machine"], "commit": "abc1234+", "load_average": [1.5, 1.0, 0.5]}
+    line = machine_line(machine)
+    assert line == (
+        "Test CPU, 2 cores; Python 3.11.0, numpy 2.0, labkit 0.1 at commit abc1234+; "
+        "2025-01-01 (load average 1.5 / 1 / 0.5 at the end)."
+    )
+    assert line in render_markdown({**KNOWN, "machine": machine}).splitlines()
+    assert set(machine_info()) >= {"commit", "load_average", "date", "cpu", "cores"}
+
+
+def test_the_benchmarks_page_renders_a_report_as_valid_restructuredtext() -> None:
+    """``docs/_ext/labkit_bench.py`` turns a ``bench.json`` into the page: every stage a
+    section, every case a row, notes, plots and tables, with no docutils error."""
+    from docutils.core import publish_doctree
+    from labkit_bench import bench_rst
+
+    text = "\n".join(["Benchmarks", "==========", "", *bench_rst(KNOWN, folder="benchmarks")])
+    warnings = io.StringIO()  # docutils' warnings and errors (level ≥ 2) go here
+    tree = publish_doctree(
+        text, settings_overrides={"report_level": 2, "halt_level": 5, "warning_stream": warnings}
+    )
+    assert not warnings.getvalue(), warnings.getvalue()
+    page = tree.astext()
+    assert "reconstruct" in page and "scaling: time ∝ pixels^p" in page and "812" in page
+    assert "exponent=0.98" in page and "a sentence" in page and "Time against size" in page
+    (figure,) = [n for n in tree.findall() if n.tagname == "image"]
+    assert figure["uri"] == "/benchmarks/reconstruct_scaling.png"
