@@ -25,14 +25,22 @@ from labkit.bench.harness import format_figure, machine_line
 CASE_COLUMNS = ["case", "median time (s)", "repeats", "peak memory (MiB)", "target (s)", "met"]
 
 
-def _cell(text: str) -> str:
-    """A table cell as reStructuredText: literal, so names with ``*`` or ``_`` stay."""
+def _text(text: str) -> str:
+    """Plain text as reStructuredText on one line: markup characters escaped, so that
+    ``|x|``, ``a*b`` or ``name_`` stay as written."""
     text = " ".join(str(text).split())
-    return f"``{text}``" if text and any(c in text for c in "*_`|\\") else (text or "—")
+    for char in "\\|*`_[]<>":
+        text = text.replace(char, "\\" + char)
+    return text
+
+
+def _cell(text: str) -> str:
+    """A table cell: its text escaped, or a dash when empty; ``**no**`` stays bold."""
+    return text if text == "**no**" else (_text(text) or "—")
 
 
 def _list_table(title: str, columns: list[str], rows: list[list[str]]) -> list[str]:
-    lines = [f".. list-table:: {title}".rstrip(), "   :header-rows: 1", ""]
+    lines = [f".. list-table:: {_text(title)}".rstrip(), "   :header-rows: 1", ""]
     for row in [columns, *rows]:
         lines.append(f"   * - {_cell(row[0])}")
         lines += [f"     - {_cell(cell)}" for cell in row[1:]]
@@ -48,7 +56,7 @@ def bench_rst(payload: dict[str, Any], *, folder: str) -> list[str]:
     lines = [f"Measured on {machine_line(payload['machine'])}", ""]
     stage_notes = payload.get("stage_notes", {})
     for stage, cases in payload["stages"].items():
-        lines += [stage, "-" * max(len(stage), 3), ""]
+        lines += [_text(stage), "-" * max(len(_text(stage)), 3), ""]
         rows = []
         for case in cases:
             passed = case.get("passed")
@@ -68,17 +76,17 @@ def bench_rst(payload: dict[str, Any], *, folder: str) -> list[str]:
         details = [(name, text) for name, text in details if text]
         if details:
             lines += ["The cases' figures:", ""]
-            lines += [f"* ``{name}``: {' '.join(text.split())}" for name, text in details]
+            lines += [f"* {_text(name)}: {_text(text)}" for name, text in details]
             lines.append("")
         for note in stage_notes.get(stage, []):
             if isinstance(note, str):
-                lines += [f"* {' '.join(note.split())}", ""]
+                lines += [f"* {_text(note)}", ""]
             elif note["kind"] == "plot":
                 lines += [
                     f".. figure:: /{folder}/{note['file']}",
-                    f"   :alt: {note['title']}",
+                    f"   :alt: {' '.join(note['title'].split())}",
                     "",
-                    f"   {note['title']}",
+                    f"   {_text(note['title'])}",
                     "",
                 ]
             else:

@@ -333,7 +333,10 @@ def test_the_benchmarks_page_renders_a_report_as_valid_restructuredtext() -> Non
     from docutils.core import publish_doctree
     from labkit_bench import bench_rst
 
-    text = "\n".join(["Benchmarks", "==========", "", *bench_rst(KNOWN, folder="benchmarks")])
+    awkward = "mean |model − lens truth| px, a*b, `name`, case_ and [1] <x>"  # markup characters
+    notes = {"reconstruct": [*KNOWN["stage_notes"]["reconstruct"], awkward]}
+    payload = {**KNOWN, "stage_notes": notes}
+    text = "\n".join(["Benchmarks", "==========", "", *bench_rst(payload, folder="benchmarks")])
     warnings = io.StringIO()  # docutils' warnings and errors (level ≥ 2) go here
     tree = publish_doctree(
         text, settings_overrides={"report_level": 2, "halt_level": 5, "warning_stream": warnings}
@@ -342,5 +345,6 @@ def test_the_benchmarks_page_renders_a_report_as_valid_restructuredtext() -> Non
     page = tree.astext()
     assert "reconstruct" in page and "scaling: time ∝ pixels^p" in page and "812" in page
     assert "exponent=0.98" in page and "a sentence" in page and "Time against size" in page
+    assert awkward in page
     (figure,) = [n for n in tree.findall() if n.tagname == "image"]
     assert figure["uri"] == "/benchmarks/reconstruct_scaling.png"

@@ -14,6 +14,7 @@ import yaml
 from _helpers import write_rig
 from _raw_files import write_dng
 
+from calibration import ChannelSensitivity, nominal_channel_sensitivity
 from labkit.cli import EXPECTED, main
 from labkit.errors import DataError
 from labkit.rig import load_rig
@@ -91,8 +92,13 @@ def test_dng_brackets_import_merge_and_calibrate(dng_brackets, tmp_path: Path) -
         assert abs(image["exposures"][-1]["disagreement_percent"]) < 2
     assert main(["calibrate", "sensitivity", str(hdr_dir), "--out", str(out),
                  "--rig", str(rig_file)]) == 0  # fmt: skip
-    table = yaml.safe_load((out / "sensitivity.yaml").read_text())
-    assert len(yaml.safe_dump(table)) > 0 and (out / "sensitivity.csv").is_file()
+    # the filtered brackets give the ratios the simulated camera's response predicts
+    table = ChannelSensitivity.from_file(out / "sensitivity.yaml")
+    nominal = nominal_channel_sensitivity(load_rig(rig_file), ["450", "550", "650"])
+    np.testing.assert_array_equal(table.wavelengths_nm, nominal.wavelengths_nm)
+    np.testing.assert_allclose(table.r_over_g, nominal.r_over_g, rtol=0.03, atol=1e-3)
+    np.testing.assert_allclose(table.b_over_g, nominal.b_over_g, rtol=0.03, atol=1e-3)
+    assert (out / "sensitivity.csv").is_file()
 
 
 def test_per_position_black_levels_become_one(tmp_path: Path, sim_rig_path: Path) -> None:
