@@ -236,16 +236,23 @@ def _prepare(args: argparse.Namespace) -> _Job:
     check_raw(raw.raw, where=f"raw image {args.raw}")
     check_light(raw.raw, name=f"raw image {args.raw}", fix="give a raw image of a lit scene")
 
+    response, source = None, None
+    if rig is not None:
+        source = rig.response_source()
+        response = _response(source, f"{args.rig}: camera.response")
+    elif args.response is not None:
+        source = args.response
+        response = _response(source, "--response")
     names = dict(CLI_NAMES)
-    source = rig.response_source() if rig is not None else args.response
-    if source is not None:  # ReconstructOptions reads it; a sensor map's bands are the default
-        names["response"] = f"{args.rig}: camera.response" if rig is not None else "--response"
-        if "bands" not in given and _is_sensor_map(source):
-            names["bands"] = f"the bands of {source}"
+    if latent == "spectral" and "bands" not in given and _is_sensor_map(source):
+        given["bands"] = [float(w) for w in response.wavelengths]  # the map's own bands
+        names["bands"] = f"the bands of {source}"
+    elif source is not None:
+        names["response"] = f"camera response {source}"
     try:
         options = ReconstructOptions(
             cfa=raw.cfa,
-            response=source if latent == "spectral" else None,
+            response=response if latent == "spectral" else None,
             dispersion=args.dispersion,
             scheduler=scheduler,
             **given,
@@ -326,6 +333,15 @@ def _check_out(out: Path, *, inputs: list[Path | None]) -> None:
 
     given = [path for path in inputs if path is not None]
     check_output_folder(out, command="labkit reconstruct", inputs=given)
+
+
+def _response(source: str, where: str) -> Any:
+    from calibration.sensitivity import load_response
+
+    try:
+        return load_response(source)
+    except DataError as error:
+        raise DataError(f"{where}: {error}") from None
 
 
 def _is_sensor_map(source: str | None) -> bool:
