@@ -29,8 +29,9 @@ test: lint docs
 # The documentation site (docs/): the user guide and the API tour, whose marked blocks run
 # during the build (their output goes onto the pages), the example gallery, whose scripts
 # run too, the API and command-line references, and the benchmarks page from the bench.json
-# that `make bench` published. Warnings are errors; -E re-reads every page so that none is hidden by the cache (sphinx-gallery still
-# skips examples whose script has not changed). Pages: docs/_build/html/index.html.
+# that `make bench` published. Warnings are errors; -E re-reads every page so that none is
+# hidden by the cache (sphinx-gallery still skips examples whose script has not changed).
+# Pages: docs/_build/html/index.html.
 docs: venv
 	$(VENV)/bin/sphinx-build -W --keep-going -E -b html docs docs/_build/html
 

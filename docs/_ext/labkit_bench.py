@@ -19,10 +19,10 @@ from docutils.statemachine import StringList
 from sphinx.util.docutils import SphinxDirective
 from sphinx.util.nodes import nested_parse_with_titles
 
-from labkit.bench.harness import format_figure, machine_line
+from labkit.bench.harness import case_cells, case_details, machine_line
 
 #: Columns of a stage's table of cases.
-CASE_COLUMNS = ["case", "median time (s)", "repeats", "peak memory (MiB)", "target (s)", "met"]
+CASE_COLUMNS = ["case", "median time (s)", "repeats", "peak memory (MiB)", "target (s)", "result"]
 
 
 def _text(text: str) -> str:
@@ -35,8 +35,8 @@ def _text(text: str) -> str:
 
 
 def _cell(text: str) -> str:
-    """A table cell: its text escaped, or a dash when empty; ``**no**`` stays bold."""
-    return text if text == "**no**" else (_text(text) or "—")
+    """A table cell: its text escaped, or a dash when empty; ``**FAIL**`` stays bold."""
+    return text if text == "**FAIL**" else (_text(text) or "—")
 
 
 def _list_table(title: str, columns: list[str], rows: list[list[str]]) -> list[str]:
@@ -47,32 +47,14 @@ def _list_table(title: str, columns: list[str], rows: list[list[str]]) -> list[s
     return [*lines, ""]
 
 
-def _details(extra: dict[str, Any]) -> str:
-    return ", ".join(f"{key}={format_figure(value)}" for key, value in extra.items())
-
-
 def bench_rst(payload: dict[str, Any], *, folder: str) -> list[str]:
     """The page body as reStructuredText lines; plots are looked up in `folder`."""
     lines = [f"Measured on {machine_line(payload['machine'])}", ""]
     stage_notes = payload.get("stage_notes", {})
     for stage, cases in payload["stages"].items():
         lines += [_text(stage), "-" * max(len(_text(stage)), 3), ""]
-        rows = []
-        for case in cases:
-            passed = case.get("passed")
-            target = case.get("target_s")
-            rows.append(
-                [
-                    case["name"],
-                    f"{case['seconds']:.3f}",
-                    str(len(case["times"])),
-                    f"{case['peak_mib']:.0f}",
-                    "—" if target is None else f"{target:g}",
-                    "—" if passed is None else ("yes" if passed else "**no**"),
-                ]
-            )
-        lines += _list_table("", CASE_COLUMNS, rows)
-        details = [(case["name"], _details(case.get("extra", {}))) for case in cases]
+        lines += _list_table("", CASE_COLUMNS, [case_cells(case) for case in cases])
+        details = [(case["name"], case_details(case)) for case in cases]
         details = [(name, text) for name, text in details if text]
         if details:
             lines += ["The cases' figures:", ""]

@@ -308,14 +308,7 @@ def render_markdown(payload: dict[str, Any]) -> str:
             "|---|---:|---:|---:|---:|---|---|",
         ]
         for m in cases:
-            passed = m.get("passed")
-            verdict = "—" if passed is None else ("pass" if passed else "**FAIL**")
-            target = "—" if m.get("target_s") is None else f"{m['target_s']:g}"
-            details = ", ".join(f"{k}={format_figure(v)}" for k, v in m.get("extra", {}).items())
-            lines.append(
-                f"| {m['name']} | {m['seconds']:.3f} | {len(m['times'])} | {m['peak_mib']:.0f} "
-                f"| {target} | {verdict} | {details} |"
-            )
+            lines.append("| " + " | ".join([*case_cells(m), case_details(m)]) + " |")
         lines.append("")
         lines += _render_notes(stage_notes.get(stage, []))
     if payload.get("notes"):
@@ -332,6 +325,32 @@ def machine_line(machine: dict[str, Any]) -> str:
         f"{machine['cpu']}, {machine['cores']} cores; Python {machine['python']}, "
         f"numpy {machine['numpy']}, labkit {machine['labkit']}{commit}; {machine['date']}{busy}."
     )
+
+
+def case_cells(case: dict[str, Any]) -> list[str]:
+    """A case's cells in a report's table of cases: name, median time (s), repeats, peak
+    memory (MiB), target (s) and result (``pass``, ``**FAIL**`` or ``—`` without a target).
+
+    Parameters
+    ----------
+    case : dict
+        A :class:`Measurement`'s fields, as ``bench.json`` holds them.
+    """
+    passed = case.get("passed")
+    target = case.get("target_s")
+    return [
+        case["name"],
+        f"{case['seconds']:.3f}",
+        str(len(case["times"])),
+        f"{case['peak_mib']:.0f}",
+        "—" if target is None else f"{target:g}",
+        "—" if passed is None else ("pass" if passed else "**FAIL**"),
+    ]
+
+
+def case_details(case: dict[str, Any]) -> str:
+    """A case's own figures (its ``extra``) as ``key=value`` pairs (:func:`format_figure`)."""
+    return ", ".join(f"{k}={format_figure(v)}" for k, v in case.get("extra", {}).items())
 
 
 def _render_notes(notes: list[str | dict[str, Any]]) -> list[str]:
