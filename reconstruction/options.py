@@ -205,7 +205,7 @@ class ReconstructOptions:
         ADMM iteration limit per patch.
     exact : bool, optional
         With non-negativity and L2-type priors, solve every patch exactly (projected-Newton
-        active-set method; :func:`~reconstruction.solvers.admm.solve`'s ``exact_nonneg``).
+        active-set method; the ``"exact"`` method of :func:`~reconstruction.solvers.solve`).
         None (default): with spectral smoothness σ > 0, patches whose initial estimate has
         few values at zero are solved exactly and directly (``direct``: no ADMM, faster
         than ADMM's solve to within 1e-4), the others by ADMM; at σ = 0, ADMM. At σ = 0

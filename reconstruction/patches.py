@@ -27,7 +27,7 @@ What a patch may skip
   problem plain L2's, solved exactly by FFT without Φ.
 
 Every patch with something to split (non-negativity, L1 terms) starts ADMM from
-:func:`~reconstruction.solvers.admm.initial_estimate` — one FFT solve with Φ as mean
+:func:`~reconstruction.solvers.quadratic.initial_estimate` — one FFT solve with Φ as mean
 translations and the priors made quadratic — instead of the thesis' zeros: far fewer
 ADMM iterations, and the first CG solve, the longest, no longer starts from nothing
 (figures in docs/notes/solver.md).
@@ -56,7 +56,7 @@ from labkit.errors import ConfigError, DataError, LabkitError
 from reconstruction.image_formation import DISCRETE, LatentSpace, build_formation
 from reconstruction.prior_terms import PriorTerm
 from reconstruction.problem import Problem
-from reconstruction.solvers.admm import solve
+from reconstruction.solvers import solve
 from reconstruction.worker_pool import worker_pool
 
 #: Meaning of the ``phi`` field of a patch record.
@@ -128,8 +128,7 @@ class SolverOptions:
     rtol: float
     atol: float | None
     max_iter: int
-    exact: bool
-    direct: bool
+    method: str
     interpolation: str
     smoothness: float
     cg_rtol: float = 1e-5
@@ -298,8 +297,7 @@ def solve_patch(
         atol=solver.atol,
         max_iter=solver.max_iter,
         cg_rtol=solver.cg_rtol,
-        exact_nonneg=solver.exact,
-        direct=solver.direct,
+        method=solver.method,
     )
     report = solution.report
     # every CG solve: ADMM's quadratic steps and the active-set methods' restricted solves

@@ -434,8 +434,7 @@ def solve_patches(
         rtol=job.choices.rtol,
         atol=job.atol,
         max_iter=o.max_iter,
-        exact=job.choices.exact,
-        direct=job.choices.direct,
+        method=job.choices.solver,
         interpolation=o.interpolation,
         smoothness=job.choices.smoothness,
     )

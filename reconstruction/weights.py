@@ -73,7 +73,7 @@ from labkit.blas_threads import fixed_blas_threads
 from labkit.errors import DataError
 from reconstruction.baselines import BASELINES
 from reconstruction.problem import Problem
-from reconstruction.solvers.admm import solve
+from reconstruction.solvers import solve
 
 CRITERIA = ("mdc", "msec", "dmc", "dmc-malvar", "dmc-menon")
 LOWEST, HIGHEST = float(np.finfo(np.float64).eps), 1e10
@@ -154,7 +154,7 @@ class _Evaluator:
         # An exact solve's result does not depend on its start, so the order of the search
         # cannot move it; it starts from the nearest weight's optimum, which the active-set
         # rounds reach from in fewer steps than from the initial estimate (docs, speed).
-        self.exact = bool(solve_options.get("exact_nonneg"))
+        self.exact = solve_options.get("method") == "exact"
         self.own_starts = self.exact or any(t.norm == 1 for t in self.problems[0].terms)
         self._lock = threading.Lock()  # solutions() may run on several threads (prefetch)
 
@@ -281,13 +281,14 @@ def select_weights(
     rtol, max_iter : float, int
         ADMM tolerance and iteration limit of the loose selection solves. They stop on
         ADMM's residual test alone (``settle=False`` of
-        :func:`~reconstruction.solvers.admm.solve`): at the thesis' loose tolerance they
+        :class:`~reconstruction.solvers.admm.ADMM`): at the thesis' loose tolerance they
         promise no distance to the optimum.
     exact : bool
-        Score the exact optimum (``exact_nonneg`` of :func:`~reconstruction.solvers.admm.solve`;
-        non-negative L2-type problems; found without Φ by the dual active-set method): the
-        image a reconstruction with spectral smoothness returns to within 1e-4, so that
-        the weight chosen does not depend on any solver tolerance.
+        Score the exact optimum (the ``"exact"`` method of
+        :func:`~reconstruction.solvers.solve`; non-negative L2-type problems; found
+        without Φ by the dual active-set method): the image a reconstruction with
+        spectral smoothness returns to within 1e-4, so that the weight chosen does not
+        depend on any solver tolerance.
     progress : callable, optional
         ``progress(round, best_value)`` after each round.
     workers : int
@@ -315,7 +316,7 @@ def select_weights(
         criterion,
         truths,
         truth_matrix,
-        {"exact_nonneg": True} if exact else {"rtol": rtol, "max_iter": max_iter, "settle": False},
+        {"method": "exact"} if exact else {"rtol": rtol, "max_iter": max_iter, "settle": False},
     )
     if criterion == "mdc":
         evaluate.prepare_mdc(count, rtol)

@@ -18,8 +18,10 @@ from labkit.blas_threads import (
 
 #: Every public numerical entry point whose result rounding can swing (module, name).
 ENTRY_POINTS = [
-    ("reconstruction.solvers.admm", "solve"),
-    ("reconstruction.solvers.admm", "initial_estimate"),
+    ("reconstruction.solvers.admm", "solve_admm"),
+    ("reconstruction.solvers.exact", "solve_exact"),
+    ("reconstruction.solvers.direct", "solve_direct"),
+    ("reconstruction.solvers.quadratic", "initial_estimate"),
     ("reconstruction.solvers.active_set", "polish"),
     ("reconstruction.solvers.active_set", "solve_periodic"),
     ("reconstruction.weights", "select_weights"),

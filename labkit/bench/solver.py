@@ -97,11 +97,11 @@ def reference_optimum(problem) -> tuple[float, str]:
     Without splits, the exact quadratic solve. Otherwise the best of: the objective a long
     ADMM solve visits (ε_rel = :data:`REFERENCE_RTOL`, at most
     :data:`REFERENCE_ITERATIONS` iterations) and, for non-negative L2-type priors, the
-    active-set solve (``exact_nonneg``). Both are needed: where the non-negative optimum is
-    degenerate (σ = 0), a KKT residual of 1e-8 still leaves points 2e-4 above it, so the
-    active-set answer depends on where it starts.
+    exact active-set solve (the ``"exact"`` method). Both are needed: where the
+    non-negative optimum is degenerate (σ = 0), a KKT residual of 1e-8 still leaves points
+    2e-4 above it, so the active-set answer depends on where it starts.
     """
-    from reconstruction.solvers.admm import solve
+    from reconstruction.solvers import solve
 
     l2_type = not problem.has_l1_penalty
     if l2_type and not problem.nonneg:
@@ -115,13 +115,13 @@ def reference_optimum(problem) -> tuple[float, str]:
     )
     candidates = [(float(min(long.report.history)), "long ADMM")]
     if l2_type:
-        exact = solve(problem, exact_nonneg=True, rtol=1e-8, cg_rtol=1e-10)
+        exact = solve(problem, method="exact", rtol=1e-8, cg_rtol=1e-10)
         if exact.report.polish is not None and exact.report.polish.status == "optimal":
             candidates.append((exact.report.objective, "active set"))
     return min(candidates)
 
 
-def stability_row(name: str, problem, **options: Any) -> StabilityRow:
+def stability_row(name: str, problem, *, method: str = "admm", **options: Any) -> StabilityRow:
     """Solve `problem` at each of :data:`THREAD_COUNTS` BLAS threads and once perturbed.
 
     Parameters
@@ -129,13 +129,15 @@ def stability_row(name: str, problem, **options: Any) -> StabilityRow:
     name : str
         Row label.
     problem : Problem
+    method : str
+        The solver (:data:`~reconstruction.solvers.SOLVE_METHODS`).
     **options
-        Keyword options of :func:`~reconstruction.solvers.admm.solve` (rtol, x0, …).
+        Its keyword options (rtol, x0, …).
     """
-    from reconstruction.solvers.admm import solve
+    from reconstruction.solvers import SOLVE_METHODS
 
-    reference, method = reference_optimum(problem)
-    unpinned: Callable = solve.__wrapped__  # labkit's own thread setting lifted
+    reference, reference_method = reference_optimum(problem)
+    unpinned: Callable = SOLVE_METHODS[method].__wrapped__  # type: ignore[attr-defined]
     runs = []
     cases = [(f"{n} thread{'s' if n > 1 else ''}", n, problem) for n in THREAD_COUNTS]
     cases.append((f"perturbed {PERTURBATION:g}", THREAD_COUNTS[0], perturbed(problem)))
@@ -155,7 +157,7 @@ def stability_row(name: str, problem, **options: Any) -> StabilityRow:
                 solution.report.converged,
             )
         )
-    return StabilityRow(name, reference, method, runs)
+    return StabilityRow(name, reference, reference_method, runs)
 
 
 def stability_table(rows: list[StabilityRow], *, title: str) -> Table:

@@ -18,7 +18,7 @@ from test_blas_thread_independence import shifted_nonneg_problem
 
 from labkit.bench.solver import reference_optimum, stability_row
 from reconstruction.problem import SUGGESTED_SMOOTHNESS
-from reconstruction.solvers.admm import solve
+from reconstruction.solvers import solve
 
 
 def test_the_answer_does_not_follow_the_conjugate_gradients_tolerance() -> None:

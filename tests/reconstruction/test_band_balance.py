@@ -20,7 +20,7 @@ from reconstruction.operators import Gradient, WeightedGradient, dot_test
 from reconstruction.options import OptionError
 from reconstruction.prior_terms import PRIORS, EdgeGuidedTerm, PriorTerm
 from reconstruction.problem import SUGGESTED_SMOOTHNESS, Problem
-from reconstruction.solvers.admm import solve
+from reconstruction.solvers import solve
 
 
 def test_band_factors_follow_the_data_strength() -> None:

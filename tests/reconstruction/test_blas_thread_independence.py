@@ -26,7 +26,7 @@ from reconstruction.image_formation import ImageFormation, LatentSpace, build_fo
 from reconstruction.prior_terms import PRIORS
 from reconstruction.problem import Problem
 from reconstruction.reconstruct import reconstruct
-from reconstruction.solvers.admm import solve
+from reconstruction.solvers import solve
 from reconstruction.weights import select_weights
 
 
@@ -54,7 +54,7 @@ import hashlib, sys
 import numpy as np
 sys.path[:0] = sys.argv[1:]
 from test_blas_thread_independence import shifted_nonneg_problem
-from reconstruction.solvers.admm import solve
+from reconstruction.solvers import solve
 from threadpoolctl import threadpool_info
 p = shifted_nonneg_problem()
 s = solve(p, x0=np.zeros(p.shape), rtol=1e-6)

@@ -177,5 +177,5 @@ def test_the_layers_below_have_no_defaults_of_their_own() -> None:
     with pytest.raises(TypeError, match="interpolation"):
         SolverOptions(  # type: ignore[call-arg]
             terms=(), weights=(), nonneg=True, rtol=1e-4, atol=None, max_iter=10,
-            exact=False, direct=False, smoothness=0.0,
+            method="admm", smoothness=0.0,
         )  # fmt: skip

@@ -13,7 +13,7 @@ from reconstruction.image_formation import ImageFormation
 from reconstruction.operators import Gradient, WeightedGradient, dot_test
 from reconstruction.prior_terms import PRIORS, EdgeGuidedTerm, PriorTerm
 from reconstruction.problem import NEGLIGIBLE_GUIDANCE, SUGGESTED_SMOOTHNESS, Problem
-from reconstruction.solvers.admm import solve
+from reconstruction.solvers import solve
 
 SHAPE = (32, 32)
 
@@ -117,7 +117,7 @@ def test_edge_guided_solve_reaches_the_optimum(with_phi: bool) -> None:
     raw = raw + 0.01 * raw.mean() * rng.standard_normal(raw.shape)
     p = Problem(a, raw, PRIORS["EdgeL2"], (0.01,), True, smoothness=SUGGESTED_SMOOTHNESS)
     default = solve(p)
-    reference = solve(p, rtol=1e-9, exact_nonneg=True, cg_rtol=1e-10, max_iter=5000)
+    reference = solve(p, rtol=1e-9, method="exact", cg_rtol=1e-10, max_iter=5000)
     gap = (default.report.objective - reference.report.objective) / reference.report.objective
     assert default.report.converged
     assert gap < 1e-4, gap

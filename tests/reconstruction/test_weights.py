@@ -17,7 +17,7 @@ from reconstruction.options import parse_weights
 from reconstruction.prior_terms import PRIORS
 from reconstruction.problem import Problem
 from reconstruction.reconstruct import reconstruct
-from reconstruction.solvers.admm import solve
+from reconstruction.solvers import solve
 from reconstruction.weights import select_weights
 
 CFA = "GBRG"
@@ -97,14 +97,12 @@ def test_exact_search_starts_from_the_nearest_optimum(monkeypatch: pytest.Monkey
     exact solve after the first starts from the nearest weight's optimum, and the search
     chooses the weight it chooses from the initial estimates (1e-3 relative; the optima
     agree to the KKT tolerance), with the same score."""
-    from reconstruction.solvers import admm
-
     problem = textured_problem()
     guided = Problem(
         problem.formation, problem.raw, PRIORS["EdgeL2"], (1.0,), True, smoothness=1e-3
     )
     starts: list[bool] = []
-    solve_exact = admm.solve
+    solve_exact = solve
 
     def recording(p: Problem, **kwargs: object):
         starts.append(kwargs.get("x0") is not None)
