@@ -7,7 +7,10 @@ longest to the shortest: the scaling factor between each consecutive pair is fit
 in the units of the longest exposure. At the end the sum is expressed at the shortest
 (reference) exposure, as a fraction of the saturation range (1.0 = a saturated pixel).
 
-Two weightings (``method``):
+The merge is a sequence of named steps: each exposure's statistics
+(:func:`exposure_sample`), the chain of scaling factors (:class:`FactorChain`), the
+weights of one of the methods of :data:`~labkit.hdr.blending.BLENDINGS`, and their
+weighted sum (:class:`WeightedSum`). Two weightings (``method``):
 
 ``"thesis"``
     Algorithm 11: min(eroded blooming weight (4.1), local weight (4.2)); pixels with
@@ -36,12 +39,15 @@ from scipy import ndimage
 from labkit.blas_threads import fixed_blas_threads
 from labkit.cfa import channel_index, check_layout
 from labkit.errors import DataError
-from labkit.hdr.noise import NoiseEstimator, NoiseModel
+from labkit.hdr.blending import BLENDINGS, ExposureSample
+from labkit.hdr.levels import DarkFrame, SensorLevels
+from labkit.hdr.noise import NoiseModel
 from labkit.hdr.scaling import CHANNEL_NAMES, MIN_PAIRS, PairFactor, fit_pair_factor
-from labkit.hdr.stack import ExposureInput, accumulate
-from labkit.hdr.weights import DISK_1, blend_weight
+from labkit.hdr.stack import ExposureInput, FrameStats, accumulate
+from labkit.hdr.weights import DISK_1
 
-METHODS = ("thesis", "noise")
+METHODS = tuple(BLENDINGS)
+"""The names of the merge's weightings (:data:`~labkit.hdr.blending.BLENDINGS`)."""
 
 MAX_EXPOSURE_SPAN = 1e15
 """Largest ratio of the longest to the shortest exposure time: signals are chained to the
@@ -54,76 +60,6 @@ demosaiced, resized and mosaiced again, the interpolation kernels), and a spread
 below `high` still reads low, which biases a factor fit towards the longer exposure's
 deficit. The blend keeps the thesis' radius-1 erosion; the fit, which has pixels to
 spare, leaves out a (2·margin + 1)² square around every clipped pixel."""
-
-
-@dataclass(frozen=True)
-class SensorLevels:
-    """Where the raw counts start and stop.
-
-    Attributes
-    ----------
-    saturation_dn : float
-        Count of a saturated pixel (full well or ADC limit), DN.
-    black_level_dn : float
-        Count of a dark pixel at zero exposure, DN.
-    """
-
-    saturation_dn: float
-    black_level_dn: float = 0.0
-
-    @property
-    def saturation_range(self) -> float:
-        """Signal of a saturated pixel above black, DN."""
-        return self.saturation_dn - self.black_level_dn
-
-    def __post_init__(self) -> None:
-        if not np.isfinite(self.saturation_dn) or self.saturation_range <= 0:
-            raise DataError(
-                f"saturation {self.saturation_dn} DN must exceed the black level "
-                f"{self.black_level_dn} DN"
-            )
-
-
-@dataclass
-class DarkFrame:
-    """What to subtract from an exposure: the mean dark frame, or a constant black level.
-
-    Attributes
-    ----------
-    exposure_s : float
-        Exposure time, s.
-    mean : ndarray (rows, cols) float32 or float
-        Mean dark counts, DN.
-    variance_dn2 : float or None
-        Temporal variance of one dark frame averaged over pixels, DN² (None: unknown).
-    count : int
-        Dark frames averaged (0 for a constant black level).
-    """
-
-    exposure_s: float
-    mean: np.ndarray | float
-    variance_dn2: float | None
-    count: int
-
-    @classmethod
-    def from_frames(
-        cls,
-        exposure: ExposureInput,
-        *,
-        shape: tuple[int, int] | None = None,
-        on_frame: Callable[[], None] | None = None,
-    ) -> DarkFrame:
-        """Average dark frames (streaming)."""
-        stats = accumulate(exposure, shape=shape, with_variance=True, on_frame=on_frame)
-        variance = (
-            None if stats.variance is None else float(np.mean(stats.variance, dtype=np.float64))
-        )
-        return cls(exposure.exposure_s, stats.mean, variance, stats.count)
-
-    @classmethod
-    def black_level(cls, exposure_s: float, black_level_dn: float) -> DarkFrame:
-        """No dark frames: subtract a constant (dark current stays in the image)."""
-        return cls(exposure_s, float(black_level_dn), None, 0)
 
 
 @dataclass
@@ -238,6 +174,195 @@ class HDRResult:
 DarkSource = Mapping[float, DarkFrame] | Callable[[float], DarkFrame]
 
 
+def check_bracket(exposures: Sequence[ExposureInput], method: str, fit_margin: int) -> None:
+    """Refuse a bracket the merge cannot make sense of, naming what is wrong."""
+    if method not in METHODS:
+        raise DataError(f"unknown HDR method {method!r}; use one of {', '.join(METHODS)}")
+    if not exposures:
+        raise DataError("nothing to merge: no exposures")
+    times = [e.exposure_s for e in exposures]
+    if len(set(times)) != len(times):
+        raise DataError(f"exposure times repeat: {sorted(times)}; merge replicates first")
+    if any(not np.isfinite(t) or t <= 0 for t in times):
+        raise DataError(f"exposure times must be positive seconds, got {times}")
+    if not max(times) / min(times) <= MAX_EXPOSURE_SPAN:
+        raise DataError(
+            f"exposure times span {min(times):g} s … {max(times):g} s, a ratio above "
+            f"{MAX_EXPOSURE_SPAN:g}: the float32 merge cannot hold it; check the exposure "
+            "times (seconds) or merge the bracket in parts"
+        )
+    if fit_margin < 0:
+        raise DataError(f"fit_margin {fit_margin} must be a non-negative number of pixels")
+
+
+def exposure_sample(
+    stats: FrameStats,
+    dark: DarkFrame,
+    exposure_s: float,
+    *,
+    levels: SensorLevels,
+    high: float,
+    fit_margin: int,
+) -> ExposureSample:
+    """One exposure's replicate statistics made a sample of the merge: dark-subtracted,
+    usable where it and its four neighbours stayed below `high` of the saturation range,
+    fittable where every pixel within `fit_margin` did."""
+    if isinstance(dark.mean, np.ndarray) and dark.mean.shape != stats.mean.shape:
+        raise DataError(
+            f"dark frames at {exposure_s:g} s are {dark.mean.shape} but the "
+            f"images are {stats.mean.shape}"
+        )
+    signal = stats.mean - np.asarray(dark.mean, dtype=np.float32)
+    unclipped = stats.maximum < levels.black_level_dn + high * levels.saturation_range
+    usable = ndimage.binary_erosion(unclipped, structure=DISK_1, border_value=1)
+    margin = np.ones((2 * fit_margin + 1,) * 2, bool)
+    fittable = ndimage.binary_erosion(unclipped, structure=margin, border_value=1)
+    return ExposureSample(exposure_s, signal, stats.variance, stats.count, usable, fittable, dark)
+
+
+def properly_exposed(sample: ExposureSample, levels: SensorLevels, low: float, high: float) -> int:
+    """Pixels of `sample` usable and between `low` and `high` of the saturation range."""
+    s, full = sample.signal, levels.saturation_range
+    return int(np.count_nonzero(sample.usable & (s >= low * full) & (s <= high * full)))
+
+
+class FactorChain:
+    """The scaling factors of consecutive exposures, fitted and chained to the longest
+    exposure's units (exposures given from the longest to the shortest).
+
+    Parameters
+    ----------
+    channels : ndarray (rows, cols)
+        CFA channel index of each pixel.
+    levels : SensorLevels
+    low, high, min_pairs
+        As for :func:`merge_exposures`.
+    """
+
+    def __init__(
+        self,
+        channels: np.ndarray,
+        levels: SensorLevels,
+        *,
+        low: float,
+        high: float,
+        min_pairs: int,
+    ) -> None:
+        self.channels, self.levels = channels, levels
+        self.low, self.high, self.min_pairs = low, high, min_pairs
+        self.chain = 1.0  # from the current exposure's signal to the longest one's
+        self.chains: dict[float, float] = {}
+        self.channel_chains: dict[float, dict[str, float | None]] = {}
+        self.pairs: list[PairFactor] = []
+        self.proper: dict[float, int] = {}
+        self.warnings: list[str] = []
+        self.notes: list[str] = []
+        self._previous: ExposureSample | None = None
+
+    def add(self, sample: ExposureSample) -> float:
+        """Chain `sample` (the next shorter exposure) on; returns its factor to the longest
+        exposure's units."""
+        t = sample.exposure_s
+        proper = self.proper[t] = properly_exposed(sample, self.levels, self.low, self.high)
+        if not proper:
+            self.warnings.append(
+                f"no pixel is properly exposed at {t:g} s (each is clipped, "
+                f"next to a clipped pixel, or below {self.low:.0%} of saturation): this "
+                "exposure adds nothing; leave it out of the plan's exposures, or let `auto` "
+                "choose them"
+            )
+        if self._previous is None:
+            channel_chain: dict[str, float | None] = dict.fromkeys(CHANNEL_NAMES, 1.0)
+        else:
+            longer = self._previous
+            longer_s = longer.exposure_s
+            pair = fit_pair_factor(
+                longer.signal,
+                sample.signal,
+                longer.fittable & sample.fittable,
+                self.channels,
+                longer_s=longer_s,
+                shorter_s=t,
+                saturation_range=self.levels.saturation_range,
+                low=self.low,
+                high=self.high,
+                min_pairs=self.min_pairs,
+            )
+            if pair.fallback:
+                _report_fallback(
+                    pair, pair.fallback, self.proper, self.min_pairs, self.warnings, self.notes
+                )
+            self.pairs.append(pair)
+            self.chain *= pair.ratio
+            last = self.channel_chains[longer_s]
+            channel_chain = {
+                name: None
+                if last[name] is None or pair.per_channel[name] is None
+                else last[name] * pair.per_channel[name]
+                for name in CHANNEL_NAMES
+            }
+        self.chains[t] = self.chain
+        self.channel_chains[t] = channel_chain
+        self._previous = sample
+        return self.chain
+
+    def summaries(self, counts: list[tuple[float, int, int]]) -> list[ExposureSummary]:
+        """Table 4.1's rows, shortest exposure first, factors to the shortest (reference)
+        exposure; `counts`: (exposure s, replicates, darks) of each exposure."""
+        reference = min(self.chains)
+        ref_chain, ref_channels = self.chains[reference], self.channel_chains[reference]
+        return [
+            ExposureSummary(
+                exposure_s=t,
+                replicates=n,
+                darks=d,
+                nominal=reference / t,
+                factor=self.chains[t] / ref_chain,
+                per_channel={
+                    name: None
+                    if self.channel_chains[t][name] is None or ref_channels[name] is None
+                    else self.channel_chains[t][name] / ref_channels[name]
+                    for name in CHANNEL_NAMES
+                },
+            )
+            for t, n, d in sorted(counts)
+        ]
+
+
+class WeightedSum:
+    """Σ w·s and Σ w of the samples in the longest exposure's units, and the merged image
+    they give."""
+
+    def __init__(self, shape: tuple[int, int]) -> None:
+        self.total = np.zeros(shape, np.float32)
+        self.weight_sum = np.zeros(shape, np.float32)
+
+    def add(self, weight: np.ndarray, scaled: np.ndarray) -> None:
+        self.total += weight * scaled
+        self.weight_sum += weight
+
+    def merged(
+        self,
+        shortest: ExposureSample,
+        shortest_chain: float,
+        longest_signal: np.ndarray,
+    ) -> tuple[np.ndarray, int, int]:
+        """The weighted mean (longest exposure's units), with the pixels no sample weighs
+        filled: those clipped (or next to a clipped pixel) at the shortest exposure take
+        its value (a lower bound), the others, never above the dark level, the longest
+        exposure's. Returns the image and how many pixels of each kind it filled
+        (saturated, unlit)."""
+        no_weight = self.weight_sum <= 0
+        merged = np.empty(self.total.shape, np.float32)
+        np.divide(self.total, self.weight_sum, out=merged, where=~no_weight)
+        clipped = ~shortest.usable
+        saturated = no_weight & clipped
+        unlit = no_weight & ~clipped
+        merged[saturated] = shortest.signal[saturated] * np.float32(shortest_chain)
+        merged[unlit] = longest_signal[unlit]  # the longest exposure's units: chain 1
+        return merged, int(np.count_nonzero(saturated)), int(np.count_nonzero(unlit))
+
+
 @fixed_blas_threads
 def merge_exposures(
     exposures: Sequence[ExposureInput],
@@ -267,7 +392,7 @@ def merge_exposures(
     levels : SensorLevels
         Saturation and black level of the raw counts, DN.
     method : {"thesis", "noise"}
-        Blending weights (see the module docstring).
+        Blending weights (:data:`~labkit.hdr.blending.BLENDINGS`).
     low, high : float
         Fractions of the saturation range bounding "properly exposed" pixels (thesis:
         2 % and 95 %).
@@ -286,230 +411,89 @@ def merge_exposures(
     -------
     HDRResult
     """
-    if method not in METHODS:
-        raise DataError(f"unknown HDR method {method!r}; use one of {', '.join(METHODS)}")
-    if not exposures:
-        raise DataError("nothing to merge: no exposures")
-    times = [e.exposure_s for e in exposures]
-    if len(set(times)) != len(times):
-        raise DataError(f"exposure times repeat: {sorted(times)}; merge replicates first")
-    if any(not np.isfinite(t) or t <= 0 for t in times):
-        raise DataError(f"exposure times must be positive seconds, got {times}")
-    if not max(times) / min(times) <= MAX_EXPOSURE_SPAN:
-        raise DataError(
-            f"exposure times span {min(times):g} s … {max(times):g} s, a ratio above "
-            f"{MAX_EXPOSURE_SPAN:g}: the float32 merge cannot hold it; check the exposure "
-            "times (seconds) or merge the bracket in parts"
-        )
+    check_bracket(exposures, method, fit_margin)
     layout = check_layout(cfa)
     get_dark = darks.__getitem__ if isinstance(darks, Mapping) else darks
-    noise_aware = method == "noise"
-    saturation_range = levels.saturation_range
-    clip_level = levels.black_level_dn + high * saturation_range
+    times = [e.exposure_s for e in exposures]
     weight_unit = np.float32(max(times) / min(times))  # noise weights: any common factor
-
+    blending_class = BLENDINGS[method]
     order = sorted(exposures, key=lambda e: e.exposure_s, reverse=True)
+    counts: list[tuple[float, int, int]] = []
     shape: tuple[int, int] | None = None
-    channels = None
-    estimator = NoiseEstimator(saturation_range, low=low) if noise_aware else None
-    chain = 1.0  # factor from the current exposure's signal to the longest one's
-    chains: dict[float, float] = {}
-    channel_chains: dict[float, dict[str, float | None]] = {}
-    pairs: list[PairFactor] = []
-    summaries_in: list[tuple[float, int, int]] = []
-    warnings: list[str] = []
-    notes: list[str] = []
-    longest_signal = None
-    proper_count: dict[float, int] = {}
-    total = weight_sum = None
-    pilot = has_pilot = shot_part = constant_part = None
-    previous: tuple[np.ndarray, np.ndarray, float, np.ndarray] | None = None
-    if fit_margin < 0:
-        raise DataError(f"fit_margin {fit_margin} must be a non-negative number of pixels")
-    margin = np.ones((2 * fit_margin + 1,) * 2, bool)
-    signal = None
-
     for exposure in order:
-        stats = accumulate(exposure, shape=shape, with_variance=noise_aware, on_frame=on_frame)
-        if shape is None:
+        stats = accumulate(
+            exposure, shape=shape, with_variance=blending_class.needs_variance, on_frame=on_frame
+        )
+        if not counts:
             shape = stats.mean.shape
-            channels = channel_index(layout, shape)
-            total = np.zeros(shape, np.float32)
-            weight_sum = np.zeros(shape, np.float32)
-            if noise_aware:
-                pilot = np.zeros(shape, np.float32)
-                has_pilot = np.zeros(shape, bool)
-                shot_part = np.zeros(shape, np.float32)
-                constant_part = np.zeros(shape, np.float32)
-        dark = get_dark(exposure.exposure_s)
-        if isinstance(dark.mean, np.ndarray) and dark.mean.shape != shape:
-            raise DataError(
-                f"dark frames at {exposure.exposure_s:g} s are {dark.mean.shape} but the "
-                f"images are {shape}"
+            factors = FactorChain(
+                channel_index(layout, shape), levels, low=low, high=high, min_pairs=min_pairs
             )
-        signal = stats.mean - np.asarray(dark.mean, dtype=np.float32)
-        unclipped = stats.maximum < clip_level
-        usable = ndimage.binary_erosion(unclipped, structure=DISK_1, border_value=1)
-        fittable = ndimage.binary_erosion(unclipped, structure=margin, border_value=1)
-        proper = usable & (signal >= low * saturation_range) & (signal <= high * saturation_range)
-        proper_count[exposure.exposure_s] = int(np.count_nonzero(proper))
-        del proper
-        if not proper_count[exposure.exposure_s]:
-            warnings.append(
-                f"no pixel is properly exposed at {exposure.exposure_s:g} s (each is clipped, "
-                f"next to a clipped pixel, or below {low:.0%} of saturation): this exposure "
-                "adds nothing; leave it out of the plan's exposures, or let `auto` choose them"
-            )
-        if longest_signal is None:
-            longest_signal = signal.copy()  # the best estimate of pixels that stay dark
-        if previous is None:
-            channel_chain: dict[str, float | None] = dict.fromkeys(CHANNEL_NAMES, 1.0)
-        else:
-            longer, _, longer_s, longer_fittable = previous
-            pair = fit_pair_factor(
-                longer,
-                signal,
-                longer_fittable & fittable,
-                channels,
-                longer_s=longer_s,
-                shorter_s=exposure.exposure_s,
-                saturation_range=saturation_range,
-                low=low,
-                high=high,
-                min_pairs=min_pairs,
-            )
-            if pair.fallback:
-                _report_fallback(pair, pair.fallback, proper_count, min_pairs, warnings, notes)
-            pairs.append(pair)
-            chain *= pair.ratio
-            last = channel_chains[longer_s]
-            channel_chain = {
-                name: None
-                if last[name] is None or pair.per_channel[name] is None
-                else last[name] * pair.per_channel[name]
-                for name in CHANNEL_NAMES
-            }
-        chains[exposure.exposure_s] = chain
-        channel_chains[exposure.exposure_s] = channel_chain
-        summaries_in.append((exposure.exposure_s, stats.count, dark.count))
-        scaled = signal * np.float32(chain)
-
-        if noise_aware:
-            estimator.add(
-                exposure.exposure_s,
-                signal,
-                stats.variance,
-                usable,
-                dark_variance=dark.variance_dn2,
-            )
-            gain = estimator.gain() or 0.0
-            if dark.variance_dn2 is not None:
-                constant = dark.variance_dn2
-            elif estimator.pixels:
-                constant = estimator.constant_variance(exposure.exposure_s)[0]
-            else:
-                constant = 0.0
-            new = usable & ~has_pilot
-            pilot[new] = scaled[new]
-            has_pilot |= new
-            # shot-noise variance per unit gain, in the longest exposure's units²: the signal
-            # the pilot implies at this exposure (pilot / chain, ≥ 0), × chain² / replicates
-            shot = np.maximum(pilot, 0) * np.float32(chain / stats.count)
-            dark_mean_var = constant / dark.count if dark.count else 0.0
-            const = np.float32(chain * chain * (constant / stats.count + dark_mean_var))
-            variance = np.float32(gain) * shot + const
-            weight = np.zeros(shape, np.float32)
-            positive = usable & (variance > 0)
-            # ∝ 1 / variance, times a constant (the exposure span) that keeps the squared
-            # weights of the shortest exposure (variance ∝ chain²) from underflowing float32
-            weight[positive] = weight_unit / variance[positive]
-            squared = weight * weight
-            shot_part += squared * shot
-            constant_part += squared * const
-        else:
-            # p = 1 exactly where the mean reached saturation: per-pixel headroom above the dark
-            headroom = np.float32(levels.saturation_dn) - np.asarray(dark.mean, np.float32)
-            weight = blend_weight(signal / headroom, erode=erode)
-        total += weight * scaled
-        weight_sum += weight
-        previous = (signal, usable, exposure.exposure_s, fittable)
-        # free this exposure's frame-sized temporaries before the next one is read
-        del stats, dark, scaled, weight, unclipped
-        if noise_aware:
-            del shot, variance, positive, squared
+            blending = blending_class(shape, levels, low=low, weight_unit=weight_unit, erode=erode)
+            weighted = WeightedSum(shape)
+        sample = exposure_sample(
+            stats,
+            get_dark(exposure.exposure_s),
+            exposure.exposure_s,
+            levels=levels,
+            high=high,
+            fit_margin=fit_margin,
+        )
+        del stats
+        chain = factors.add(sample)
+        if not counts:
+            longest_signal = sample.signal.copy()  # the best estimate of pixels that stay dark
+        counts.append((exposure.exposure_s, sample.replicates, sample.dark.count))
+        scaled = sample.signal * np.float32(chain)
+        weighted.add(blending.weight(sample, chain, scaled), scaled)
+        sample.replicate_variance = None  # free it before the next exposure is read
+        del scaled
 
     reference = order[-1].exposure_s
-    reference_chain = chains[reference]
-    no_weight = weight_sum <= 0
-    merged = np.empty(shape, np.float32)
-    np.divide(total, weight_sum, out=merged, where=~no_weight)
-    # no weight anywhere: clipped (or next to a clipped pixel) at the shortest exposure, or
-    # else never above the dark level (thesis weights are 0 at p ≤ 0)
-    clipped = ~previous[1]
-    saturated_mask = no_weight & clipped
-    unlit_mask = no_weight & ~clipped
-    merged[saturated_mask] = signal[saturated_mask] * np.float32(reference_chain)  # shortest
-    merged[unlit_mask] = longest_signal[unlit_mask]  # the longest exposure's units: chain 1
-    to_output = np.float32(1.0 / (reference_chain * saturation_range))
+    merged, saturated, unlit = weighted.merged(sample, chain, longest_signal)
+    del longest_signal
+    to_output = np.float32(1.0 / (chain * levels.saturation_range))
     merged *= to_output
-    saturated = int(np.count_nonzero(saturated_mask))
-    unlit = int(np.count_nonzero(unlit_mask))
-    del longest_signal, saturated_mask, unlit_mask
-
-    noise_model = None
-    variance_out = None
-    if noise_aware:
-        noise_model = estimator.model([e.exposure_s for e in exposures])
-        variance_out = np.empty(shape, np.float32)
-        safe = np.where(no_weight, 1.0, weight_sum)
-        variance_out[:] = (np.float32(noise_model.gain_dn_per_e) * shot_part + constant_part) / (
-            safe * safe
-        )
-        variance_out *= to_output * to_output
-        variance_out[no_weight] = np.maximum(merged[no_weight] ** 2, np.float32(1e-12))
-    if saturated:
-        warnings.append(
-            f"{saturated} pixels are saturated (or next to saturation) even at the shortest "
-            f"exposure {reference:g} s; their values are lower bounds"
-        )
-    if unlit:
-        notes.append(
-            f"{unlit} pixel(s) show no signal above the dark level at any exposure (up to "
-            f"{order[0].exposure_s:g} s); their values are the longest exposure's"
-        )
-    summaries = [
-        ExposureSummary(
-            exposure_s=t,
-            replicates=n,
-            darks=d,
-            nominal=reference / t,
-            factor=chains[t] / reference_chain,
-            per_channel={
-                name: None
-                if channel_chains[t][name] is None or channel_chains[reference][name] is None
-                else channel_chains[t][name] / channel_chains[reference][name]
-                for name in CHANNEL_NAMES
-            },
-        )
-        for t, n, d in sorted(summaries_in)
-    ]
+    variance, noise_model = blending.variance(weighted.weight_sum, times)
+    if variance is not None:
+        no_weight = weighted.weight_sum <= 0
+        variance *= to_output * to_output
+        variance[no_weight] = np.maximum(merged[no_weight] ** 2, np.float32(1e-12))
+    _report_unweighted(saturated, unlit, reference, order[0].exposure_s, factors)
     _check_finite(merged, "raw")
-    if variance_out is not None:
-        _check_finite(variance_out, "variance")
+    if variance is not None:
+        _check_finite(variance, "variance")
     return HDRResult(
         raw=merged,
-        variance=variance_out,
+        variance=variance,
         reference_exposure_s=reference,
         method=method,
-        exposures=summaries,
-        pairs=pairs,
+        exposures=factors.summaries(counts),
+        pairs=factors.pairs,
         noise=noise_model,
         saturated_pixels=saturated,
         levels=levels,
         dark_pixels=unlit,
-        warnings=warnings,
-        notes=notes,
+        warnings=factors.warnings,
+        notes=factors.notes,
     )
+
+
+def _report_unweighted(
+    saturated: int, unlit: int, shortest_s: float, longest_s: float, factors: FactorChain
+) -> None:
+    """Say which pixels no exposure weighed: saturated ones (a warning: lower bounds) and
+    unlit ones (a note)."""
+    if saturated:
+        factors.warnings.append(
+            f"{saturated} pixels are saturated (or next to saturation) even at the shortest "
+            f"exposure {shortest_s:g} s; their values are lower bounds"
+        )
+    if unlit:
+        factors.notes.append(
+            f"{unlit} pixel(s) show no signal above the dark level at any exposure (up to "
+            f"{longest_s:g} s); their values are the longest exposure's"
+        )
 
 
 def _report_fallback(

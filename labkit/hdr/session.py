@@ -33,7 +33,8 @@ from labkit.blas_threads import fixed_blas_threads
 from labkit.cfa import layout_from_pixel_format, pixel_format_bits
 from labkit.errors import DataError, DataWarning
 from labkit.frame import DARK, exposure_label
-from labkit.hdr.merge import DarkFrame, HDRResult, SensorLevels, merge_exposures
+from labkit.hdr.levels import DarkFrame, SensorLevels
+from labkit.hdr.merge import HDRResult, merge_exposures
 from labkit.hdr.stack import ExposureInput, FrameSource
 from labkit.io.atomic import write_text_atomic
 from labkit.io.digest import read_verified
