@@ -1,12 +1,13 @@
 """Thesis Algorithm 10 (exposure bracketing, auto-bracketing and dark frames) as a Bluesky
 plan: ``RE(labkit_plan(camera, slider, rig, stage=stage))``.
 
-The plan runs the steps of :func:`labkit.protocol.build_plan`, in the same order and with
-the same device calls as ``labkit capture``'s engine:
+The plan carries out the requests of :func:`labkit.protocol.steps.protocol_steps`, the one
+description of the protocol that ``labkit capture``'s engine carries out too, so it makes
+the same device calls in the same order:
 
 - the stage, the light cover and the slider move only when they must change;
 - an ``auto`` illumination is metered, its exposure times chosen and checked with
-  :func:`labkit.protocol.auto_bracketing` (the engine's own sequence), and the plan rebuilt;
+  :func:`labkit.protocol.auto_bracketing`, and the plan rebuilt;
 - every frame is checked as the engine checks it.
 
 The documents it emits:
@@ -35,16 +36,16 @@ from ophyd import Component, Device, Signal
 import labkit
 from labkit.bluesky.devices import LabkitCamera, LabkitSlider, LabkitStage, frame_from_reading
 from labkit.errors import ConfigError
-from labkit.frame import FrameKey
-from labkit.protocol.bracketing import auto_bracketing
-from labkit.protocol.engine import check_frame, configure_camera
-from labkit.protocol.plan import (
-    Capture,
-    Meter,
-    build_plan,
-    pending_changes,
-    update_desired_state,
-    validate_plan,
+from labkit.frame import Frame, FrameKey
+from labkit.protocol.plan import build_plan, validate_plan
+from labkit.protocol.steps import (
+    Acquire,
+    BracketChosen,
+    Move,
+    Record,
+    Request,
+    configure_camera,
+    protocol_steps,
 )
 from labkit.rig import Rig
 from labkit.session.store import plan_fingerprint, rig_snapshot
@@ -129,15 +130,7 @@ def labkit_plan(
         },
         **(md or {}),
     }
-    brackets: dict[tuple[str, str], list[float]] = {}
-
-    def apply(desired: dict[str, Any], state: dict[str, Any]) -> Generator[Any, Any, None]:
-        for key, value in pending_changes(desired, state):
-            if key == "slot":
-                yield from bps.mv(slider, value)
-            else:
-                yield from bps.mv(stage, ("cover" if key == "covered" else "scene", value))
-            state[key] = value
+    taken: set[FrameKey] = set()
 
     def read_frame(exposure_s: float, key: FrameKey, stream: str) -> Generator[Any, Any, Any]:
         yield from bps.mv(camera.exposure_s, exposure_s)
@@ -148,53 +141,45 @@ def labkit_plan(
         reading = yield from bps.trigger_and_read([camera, label, slider, stage], name=stream)
         return frame_from_reading(reading, camera.name)
 
-    def meter(step: Meter) -> Generator[Any, Any, None]:
-        auto = rig.plan.auto
-        bounds = camera.camera.exposure_bounds()
-        steps = auto_bracketing(bounds, auto)
-        key = FrameKey(step.scene, step.illumination, 0.0, 0)
-        exposure = next(steps)
-        try:
-            while True:
-                frame = yield from read_frame(exposure, key, METERING)
-                exposure = steps.send(frame)
-        except StopIteration as done:
-            choice = done.value
-        brackets[step.scene, step.illumination] = list(choice.exposures_s)
-        yield from bps.mv(
-            note.scene, step.scene, note.illumination, step.illumination,
-            note.text, json.dumps(choice.as_dict()),
-        )  # fmt: skip
-        yield from bps.trigger_and_read([note], name=BRACKETS)
+    def carry_out(request: Request) -> Generator[Any, Any, Frame | None]:
+        match request:
+            case Move("slot", value):
+                yield from bps.mv(slider, value)
+            case Move(what, value):
+                yield from bps.mv(stage, ("cover" if what == "covered" else "scene", value))
+            case Acquire(exposure_s, key, metering):
+                stream = METERING if metering else PRIMARY
+                return (yield from read_frame(exposure_s, key, stream))
+            case BracketChosen(step, choice):
+                yield from bps.mv(
+                    note.scene, step.scene, note.illumination, step.illumination,
+                    note.text, json.dumps(choice.as_dict()),
+                )  # fmt: skip
+                yield from bps.trigger_and_read([note], name=BRACKETS)
+            case Record(key, _):
+                taken.add(key)  # the event is the record
+        return None
 
     @bpp.run_decorator(md=metadata)
-    def run() -> Generator[Any, Any, None]:
+    def run() -> Generator[Any, Any, dict[tuple[str, str], list[float]]]:
         configure_camera(camera.camera, rig)
-        state: dict[str, Any] = {}
-        taken: set[FrameKey] = set()
-        while True:
-            desired: dict[str, Any] = {}
-            for step in build_plan(rig, brackets):
-                if update_desired_state(desired, step):
-                    continue
-                if isinstance(step, Meter):
-                    yield from apply(desired, state)
-                    yield from meter(step)
-                    break  # exposures known now: rebuild the plan
-                elif isinstance(step, Capture):
-                    # the plan is rebuilt after each metering: what was taken stays taken
-                    missing = [key for key in step.keys() if key not in taken]
-                    if missing:
-                        yield from apply(desired, state)
-                    for key in missing:
-                        frame = yield from read_frame(step.exposure_s, key, PRIMARY)
-                        check_frame(frame, key, shape=shape, serial=identity.serial)
-                        taken.add(key)
-            else:
-                break
+        steps = protocol_steps(
+            rig,
+            brackets={},
+            done=taken.__contains__,
+            exposure_bounds=camera.camera.exposure_bounds,
+            shape=shape,
+            serial=identity.serial,
+        )
+        answer: Frame | None = None
+        try:
+            while True:
+                answer = yield from carry_out(steps.send(answer))
+        except StopIteration as finished:
+            brackets: dict[tuple[str, str], list[float]] = finished.value
         statistics = dict(camera.camera.stream_statistics())
         yield from bps.mv(note.scene, "", note.illumination, "", note.text, json.dumps(statistics))
         yield from bps.trigger_and_read([note], name=STATISTICS)
+        return brackets
 
-    yield from run()
-    return brackets
+    return (yield from run())

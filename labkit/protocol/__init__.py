@@ -1,4 +1,5 @@
-"""The capture protocol (thesis Algorithm 10): plan, auto-bracketing, stage and engine."""
+"""The capture protocol (thesis Algorithm 10): plan, auto-bracketing, stage, the protocol's
+steps (:mod:`~labkit.protocol.steps`) and the engine that carries them out."""
 
 from labkit.protocol.bracketing import (
     BracketChoice,
@@ -13,13 +14,7 @@ from labkit.protocol.bracketing import (
     run_auto_bracketing,
     usable_in,
 )
-from labkit.protocol.engine import (
-    CaptureReport,
-    CaptureStopped,
-    Engine,
-    check_frame,
-    configure_camera,
-)
+from labkit.protocol.engine import CaptureReport, CaptureStopped, Engine
 from labkit.protocol.plan import (
     DARK,
     Capture,
@@ -35,6 +30,7 @@ from labkit.protocol.plan import (
     validate_plan,
 )
 from labkit.protocol.stage import OperatorStage, SimStage, Stage
+from labkit.protocol.steps import check_frame, configure_camera, drive, protocol_steps
 
 __all__ = [
     "DARK",
@@ -59,12 +55,14 @@ __all__ = [
     "choose_bracket",
     "choose_exposures",
     "configure_camera",
+    "drive",
     "estimate_rates",
     "exposure_label",
     "exposure_ladder",
     "frame_levels",
     "meter",
     "metering",
+    "protocol_steps",
     "run_auto_bracketing",
     "usable_in",
     "validate_plan",

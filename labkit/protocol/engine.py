@@ -1,9 +1,10 @@
 """The engine that runs a capture plan into a session, and resumes it.
 
-It keeps the plan's *desired* state (scene, slot, light cover) and applies it to the
-hardware only before a step that still has frames to capture, so a resumed session
-goes straight to its first missing frame. Every action is logged to ``log.jsonl``.
-Frames are stored by a :class:`~labkit.session.FrameWriter` on background threads.
+It carries out the requests of Algorithm 10 (:func:`~labkit.protocol.steps.protocol_steps`)
+on the devices: the stage, light cover and slider move only before a step that still has
+frames to capture, so a resumed session goes straight to its first missing frame. Every
+action is logged to ``log.jsonl``. Frames are stored by a
+:class:`~labkit.session.FrameWriter` on background threads.
 """
 
 from __future__ import annotations
@@ -16,21 +17,25 @@ from typing import Any, Protocol
 
 from labkit.devices.camera import Camera
 from labkit.devices.slider import FilterSlider
-from labkit.errors import DeviceError, LabkitError
+from labkit.errors import LabkitError
 from labkit.frame import Frame
 from labkit.io.plain import now_iso
-from labkit.protocol.bracketing import run_auto_bracketing
-from labkit.protocol.plan import (
-    Capture,
-    FrameKey,
-    Meter,
-    Plan,
-    build_plan,
-    pending_changes,
-    update_desired_state,
-    validate_plan,
-)
+from labkit.protocol.bracketing import BracketChoice
+from labkit.protocol.plan import Meter, Plan, build_plan, validate_plan
 from labkit.protocol.stage import Stage
+from labkit.protocol.steps import (
+    Acquire,
+    BracketChosen,
+    Move,
+    PlanReady,
+    Record,
+    Request,
+    StartCapture,
+    StartMeter,
+    configure_camera,
+    drive,
+    protocol_steps,
+)
 from labkit.rig import Rig
 from labkit.session.store import FrameWriter, Session
 
@@ -116,7 +121,6 @@ class Engine:
         self.progress = progress or _IgnoreProgress()
         self.stop = stop or threading.Event()
         self.writer_workers = writer_workers
-        self._state: dict[str, Any] = {}  # what the hardware is known to be doing
 
     def plan(self) -> Plan:
         """The plan with the exposures chosen so far."""
@@ -161,39 +165,51 @@ class Engine:
         self._finish(report, "complete", None, started)
         return report
 
-    # -- the loop -----------------------------------------------------------------------------
+    # -- the loop: Algorithm 10's requests, carried out on the devices ------------------------
     def _run_plan(self, writer: FrameWriter, report: CaptureReport) -> None:
-        while True:
-            plan = self.plan()
-            report.planned = plan.frame_count
-            self.progress.set_total(plan.frame_count, sum(writer.has(k) for k in plan.keys()))
-            desired: dict[str, Any] = {}
-            for step in plan:
-                if update_desired_state(desired, step):
-                    continue
-                if isinstance(step, Meter):
-                    self._apply(desired)
-                    self._meter(step, report)
-                    break  # exposures known now: rebuild the plan
-                elif isinstance(step, Capture):
-                    # queued frames count: the plan is rebuilt while writes are pending
-                    missing = [k for k in step.keys() if not writer.has(k)]
-                    if missing:
-                        self._apply(desired)
-                        self._capture(step, missing, writer)
-            else:
-                return
+        steps = protocol_steps(
+            self.rig,
+            brackets=self.session.brackets,
+            done=writer.has,  # queued frames count: the plan is rebuilt while writes are pending
+            exposure_bounds=self.camera.exposure_bounds,
+            shape=self._shape,
+            serial=self._serial,
+        )
+        drive(steps, functools.partial(self._carry_out, writer=writer, report=report))
 
-    def _apply(self, desired: dict[str, Any]) -> None:
-        for key, value in pending_changes(desired, self._state):
-            if key == "covered":
-                action = self.stage.cover_light if value else self.stage.uncover_light
-                self._act(action, "cover" if value else "uncover")
-            elif key == "scene":
-                self._act(functools.partial(self.stage.set_scene, value), "scene", value)
-            else:
-                self._act(functools.partial(self.slider.move, value), "move", value)
-            self._state[key] = value
+    def _carry_out(
+        self, request: Request, *, writer: FrameWriter, report: CaptureReport
+    ) -> Frame | None:
+        match request:
+            case PlanReady(plan):
+                report.planned = plan.frame_count
+                self.progress.set_total(plan.frame_count, sum(writer.has(k) for k in plan.keys()))
+            case Move(what, value):
+                self._move(what, value)
+            case StartMeter(step):
+                self.progress.set_step(f"meter {step.scene}/{step.illumination}")
+            case Acquire(exposure_s, _, metering):
+                if not metering:
+                    self._check_stop()
+                return self.camera.grab(exposure_s, 1)[0]
+            case BracketChosen(step, choice):
+                self._record_bracket(step, choice, report)
+            case StartCapture(step, missing):
+                self.progress.set_step(step.describe())
+                self.session.log("capture", step=step.describe(), missing=len(missing))
+            case Record(key, frame):
+                writer.submit(key, frame)
+                self.progress.advance(1)
+        return None
+
+    def _move(self, what: str, value: Any) -> None:
+        if what == "covered":
+            action = self.stage.cover_light if value else self.stage.uncover_light
+            self._act(action, "cover" if value else "uncover")
+        elif what == "scene":
+            self._act(functools.partial(self.stage.set_scene, value), "scene", value)
+        else:
+            self._act(functools.partial(self.slider.move, value), "move", value)
 
     def _act(self, action: Any, event: str, value: Any = None) -> None:
         self._check_stop()
@@ -201,24 +217,7 @@ class Engine:
         action()
         self.session.log(event, value=value)
 
-    def _capture(self, step: Capture, missing: list[FrameKey], writer: FrameWriter) -> None:
-        self.progress.set_step(step.describe())
-        self.session.log("capture", step=step.describe(), missing=len(missing))
-        for key in missing:
-            self._check_stop()
-            frame = self.camera.grab(step.exposure_s, 1)[0]
-            self._check_frame(frame, key)
-            writer.submit(key, frame)
-            self.progress.advance(1)
-
-    def _check_frame(self, frame: Frame, key: FrameKey) -> None:
-        check_frame(frame, key, shape=self._shape, serial=self._serial)
-
-    def _meter(self, step: Meter, report: CaptureReport) -> None:
-        auto = self.rig.plan.auto
-        self.progress.set_step(f"meter {step.scene}/{step.illumination}")
-        bounds = self.camera.exposure_bounds()
-        choice = run_auto_bracketing(self.camera, bounds=bounds, auto=auto)
+    def _record_bracket(self, step: Meter, choice: BracketChoice, report: CaptureReport) -> None:
         fixed = self.rig.replicates_for(step.illumination)
         self.session.save_bracket(step.scene, step.illumination, choice.as_dict())
         self.session.log(
@@ -256,46 +255,3 @@ class Engine:
         )
         session.log("finish", status=status, reason=reason, stored=report.stored_now)
         session.set_status(status, reason)
-
-
-def configure_camera(camera: Camera, rig: Rig) -> None:
-    """Set the rig's pixel format and gain on `camera`, checking the gain first.
-
-    Raises
-    ------
-    DeviceError
-        A gain outside the camera's range, or a non-zero gain on a camera without a
-        ``Gain`` feature in dB.
-    """
-    config = rig.camera
-    if camera.pixel_format != config.pixel_format:
-        camera.set_pixel_format(config.pixel_format)
-    serial = camera.identity.serial
-    if "Gain" not in camera.feature_names():
-        if config.gain_db:
-            raise DeviceError(
-                f"camera {serial} has no Gain feature in dB, so camera.gain_db "
-                f"{config.gain_db:g} cannot be applied; set camera.gain_db to 0"
-            )
-        return
-    gain = camera.gain_bounds()
-    if not gain.contains(config.gain_db):
-        raise DeviceError(
-            f"camera {serial}: gain {config.gain_db:g} dB is outside "
-            f"[{gain.minimum:g}, {gain.maximum:g}] dB; change camera.gain_db in the rig file"
-        )
-    camera.set("Gain", config.gain_db)
-
-
-def check_frame(frame: Frame, key: FrameKey, *, shape: tuple[int, int], serial: str) -> None:
-    """Raise DeviceError unless `frame` is a good capture of `key`: a ``SUCCESS`` buffer of
-    `shape` exposed for the planned time (within 1e-9 relative)."""
-    if frame.status != "SUCCESS":
-        problem = f"buffer status {frame.status}; the session can be resumed"
-    elif frame.image.shape != shape:
-        problem = f"image shape {frame.image.shape} ≠ {shape}"
-    elif abs(frame.exposure_s - key.exposure_s) > 1e-9 * max(1.0, key.exposure_s):
-        problem = f"exposure {frame.exposure_s} s ≠ planned {key.exposure_s} s"
-    else:
-        return
-    raise DeviceError(f"camera {serial}, frame {frame.frame_id} for {key.id}: {problem}")
