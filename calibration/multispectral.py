@@ -173,7 +173,7 @@ def synthesize_multispectral(
     cube = cube.astype(np.float32)
     rgb = rgb.astype(np.float32)
     provenance = {
-        "method": "thesis Algorithm 13 (bilinear Green per band, collapsed with R/G, B/G)",
+        "method": "bilinear Green per band, collapsed with R/G, B/G (the thesis' synthesis)",
         "scene": scene,
         "units": RATE_UNITS,
         "sources": [source_of(image) for image in ordered],

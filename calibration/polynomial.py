@@ -67,7 +67,7 @@ MAX_DEGREE_XY = 12
 #: Which bands a spectral model's degree selection holds out in turn.
 VALIDATIONS = {
     "every-band": "every band, the shortest and longest too (extrapolation is judged)",
-    "interior": "the bands between the shortest and the longest (thesis Algorithm 1)",
+    "interior": "the bands between the shortest and the longest (as the thesis)",
 }
 #: Fewest keypoints a band or channel must have (a plane through them needs three).
 MIN_KEYPOINTS = 3
@@ -261,7 +261,7 @@ def _fit_spectral(
     if n_bands < 3:
         raise DataError(
             f"the keypoints cover {n_bands} band(s) ({', '.join(f'{b:g} nm' for b in bands)}); "
-            "a spectral dispersion model needs at least 3 bands (Algorithm 1 validates on "
+            "a spectral dispersion model needs at least 3 bands (its degree is validated on "
             "the bands between the shortest and longest wavelength); with fewer bands fit a "
             "colour-channel model instead"
         )

@@ -22,26 +22,29 @@ the whole job runs on a laptop (each stage's time is in the report).
 from __future__ import annotations
 
 import json
-import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
-from tqdm import tqdm
 
-from labkit.io import display_on_one_scale, write_png, write_text_atomic
+from labkit.demo_steps import (
+    Stages,
+    method_figures,
+    reconstruct_and_save,
+    reconstruction_notes,
+    save_models,
+    stage_table,
+)
+from labkit.io import write_text_atomic
 from labkit.io.tiff import json_default
 from labkit.plots import (
-    plot_channel_errors,
-    plot_crops,
     plot_dispersion,
     plot_patch_spectra,
     plot_rig_spectra,
 )
-from labkit.report import Report, file_stem
-from labkit.rig import Rig, default_rig_path, rig_from_dict
+from labkit.report import Report
+from labkit.rig import Rig, default_rig_path, load_rig
+from labkit.sim.plans import simulated_plans
 
 DEMO_SHAPE = (768, 1024)
 """Sensor size of the demo, (rows, cols) px."""
@@ -74,7 +77,7 @@ def run_demo(out: str | Path, *, rig_path: str | Path | None = None, quick: bool
     out.mkdir(parents=True, exist_ok=True)
     rig_file = Path(rig_path) if rig_path else default_rig_path()
     shape = QUICK_SHAPE if quick else DEMO_SHAPE
-    rigs = demo_rigs(rig_file, shape)
+    rigs = simulated_plans(load_rig(rig_file), shape, scenes=RECONSTRUCTED)
     results: dict[str, Any] = {"shape": list(shape), "rig": str(rig_file), "quick": quick}
     report = Report(f"labkit demo — {rigs['calibration'].name}")
     stage = Stages(5, "demo")
@@ -102,64 +105,6 @@ def run_demo(out: str | Path, *, rig_path: str | Path | None = None, quick: bool
     )
     _, page = report.write(out)
     return page
-
-
-class Stages:
-    """Runs the named stages of a job under one progress bar and records their wall time.
-
-    ``stages(name, function)`` runs `function` and returns its value; :attr:`seconds` maps
-    each stage's name to its wall time, s, in order.
-    """
-
-    def __init__(self, total: int, description: str, *, disable: bool | None = False) -> None:
-        self.description = description
-        self.seconds: dict[str, float] = {}
-        self.bar = tqdm(total=total, desc=description, unit="stage", disable=disable)
-
-    def __call__(self, name: str, function: Callable[[], Any]) -> Any:
-        self.bar.set_description(f"{self.description}: {name}")
-        start = time.perf_counter()
-        value = function()
-        self.seconds[name] = time.perf_counter() - start
-        self.bar.update()
-        return value
-
-    def close(self) -> None:
-        self.bar.close()
-
-
-def stage_table(report: Report, seconds: dict[str, float]) -> None:
-    """Add the time of every stage, and their total, to `report` as a table."""
-    report.table(
-        ["stage", "time (s)"],
-        [[name, f"{value:.1f}"] for name, value in seconds.items()]
-        + [["total", f"{sum(seconds.values()):.1f}"]],
-    )
-
-
-def demo_rigs(rig_file: Path, shape: tuple[int, int]) -> dict[str, Rig]:
-    """The two capture plans of the demo on a sensor of `shape`: calibration and scenes."""
-    data = yaml.safe_load(Path(rig_file).read_text())
-    if data.get("camera", {}).get("backend") != "sim":
-        from labkit.errors import ConfigError
-
-        raise ConfigError(f"{rig_file}: the demo needs a simulated rig (camera.backend: sim)")
-    data["sim"]["sensor"].update(width=shape[1], height=shape[0])
-    pitch = 32 if min(shape) < 512 else 64
-    data["sim"]["scenes"]["disks"] = {"type": "disks", "radius_px": pitch // 4, "pitch_px": pitch}
-    data["sim"]["scenes"].setdefault("texture", {"type": "texture", "seed": 7})
-    plan = data.setdefault("plan", {})
-    plan["exposures_s"] = {"unfiltered": "auto", "filtered": "auto"}
-    plan["dark_frames"] = True
-    calibration = {**data, "plan": {**plan, "scenes": ["disks"], "illuminations": "all"}}
-    scenes = {
-        **data,
-        "plan": {**plan, "scenes": list(RECONSTRUCTED), "illuminations": ["unfiltered"]},
-    }
-    return {
-        "calibration": rig_from_dict(calibration, source=f"{rig_file} (demo calibration plan)"),
-        "scenes": rig_from_dict(scenes, source=f"{rig_file} (demo scene plan)"),
-    }
 
 
 def _capture(rigs: dict[str, Rig], out: Path) -> dict[str, Any]:
@@ -216,37 +161,6 @@ def _calibrate(rig: Rig, out: Path) -> dict[str, Any]:
     return {"spectral": spectral.model, "colour": colour.model, "summary": summary}
 
 
-def save_models(spectral: Any, colour: Any, folder: Path) -> dict[str, Any]:
-    """Save a spectral and a colour-channel dispersion calibration with their plots.
-
-    Writes ``spectral_to_reference.yaml``, ``colour_from_reference.yaml`` and a PNG of
-    each into `folder`; returns their summary for the report.
-    """
-    from calibration.plots import plot_model
-
-    spectral.model.save(folder / "spectral_to_reference.yaml")
-    colour.model.save(folder / "colour_from_reference.yaml")
-    plot_model(spectral.model, folder / "spectral_model.png")
-    plot_model(colour.model, folder / "colour_model.png")
-    selection = spectral.model.selection
-    return {
-        "spectral": {
-            "bands_used_nm": sorted(b.wavelength_nm for b in spectral.bands if b.used),
-            "reference_nm": float(spectral.model.reference),
-            "keypoints": len(spectral.keypoints),
-            "degree_xy": selection.get("degree_xy"),
-            "degree_lambda": selection.get("degree_lambda"),
-            "condition_number": selection.get("condition_number"),
-            "warnings": list(spectral.warnings),
-        },
-        "colour": {
-            "keypoints": len(colour.keypoints),
-            "degree_xy": colour.model.selection.get("degree_xy"),
-            "warnings": list(colour.warnings),
-        },
-    }
-
-
 def _reconstruct(rig: Rig, out: Path, models: dict[str, Any]) -> dict[str, Any]:
     from labkit.io import read_raw_exr
     from labkit.sim import SimulatedRig
@@ -255,11 +169,16 @@ def _reconstruct(rig: Rig, out: Path, models: dict[str, Any]) -> dict[str, Any]:
     jobs = [(scene, scene, scene, {}) for scene in RECONSTRUCTED] + [
         (
             "colorchecker",
-            "colorchecker (§6.3 mean-colour)",
+            "colorchecker (reference spectrum from the mean colour)",
             "colorchecker_mean_colour",
             {"reference": "mean-colour"},
         ),
-        ("colorchecker", "colorchecker (§3.9.2 warp)", "colorchecker_warp", {"correction": "warp"}),
+        (
+            "colorchecker",
+            "colorchecker (solved without the dispersion, then warped)",
+            "colorchecker_warp",
+            {"correction": "warp"},
+        ),
     ]
     results = {}
     for scene, name, slug, variant in jobs:
@@ -282,79 +201,6 @@ def _reconstruct(rig: Rig, out: Path, models: dict[str, Any]) -> dict[str, Any]:
             "summary": summary,
         }
     return results
-
-
-def reconstruct_and_save(
-    raw: np.ndarray,
-    folder: Path,
-    *,
-    name: str,
-    command: str = "labkit demo",
-    disable_progress: bool | None = False,
-    **options: Any,
-) -> tuple[Any, dict[str, Any]]:
-    """Reconstruct `raw` with a progress bar and save it into `folder`
-    (:meth:`reconstruction.Reconstruction.save`).
-
-    Returns the :class:`reconstruction.Reconstruction` and a summary for the report
-    (seconds, bands, weight, patch counts, median ADMM iterations).
-    """
-    from reconstruction import reconstruct
-
-    bar = tqdm(desc=f"reconstruct {name}", unit="patch", leave=False, disable=disable_progress)
-
-    def progress(done: int, total: int) -> None:
-        bar.total = total
-        bar.n = done
-        bar.refresh()
-
-    start = time.perf_counter()
-    result = reconstruct(raw, progress=progress, **options)
-    seconds = time.perf_counter() - start
-    bar.close()
-    result.save(folder, provenance={"command": command})
-    patches = result.log["patches"]
-    summary = {
-        "seconds": seconds,
-        "bands_nm": [float(b) for b in result.wavelengths_nm],
-        "weights": result.log["weights"]["values"],
-        "patches": patches["count"],
-        "phi_used": patches["phi_used"],
-        "flat": patches["flat"],
-        "median_iterations": patches["iterations_median"],
-        "exact": patches["exact"],
-        "warnings": list(result.log.get("warnings", [])),
-        "choices": result.log.get("choices", {}),
-    }
-    return result, summary
-
-
-def reconstruction_notes(report: Any, summaries: dict[str, dict[str, Any]]) -> None:
-    """Add the reconstructions' warnings (their logs' ``warnings``), if any, and the
-    choices labkit made for each (their logs' ``choices``: value, how, why) to `report`."""
-    notices = [f"{name}: {w}" for name, s in summaries.items() for w in s.get("warnings", [])]
-    if notices:
-        report.bullets(notices)
-    rows = [
-        [name, option, _choice_value(c["value"]), c["source"], c["reason"]]
-        for name, s in summaries.items()
-        for option, c in s.get("choices", {}).items()
-        if c["source"] != "given"
-    ]
-    if rows:
-        report.paragraph(
-            "Choices labkit made (each can be given as an option instead; `log.json`'s "
-            "`choices` records them with their evidence):"
-        )
-        report.table(["image", "option", "value", "how", "why"], rows)
-
-
-def _choice_value(value: Any) -> str:
-    if isinstance(value, list) and value and all(isinstance(v, (int, float)) for v in value):
-        return f"{len(value)} values, {value[0]:g}–{value[-1]:g}"
-    if isinstance(value, float):
-        return f"{value:g}"
-    return str(value)
 
 
 def _evaluate(
@@ -415,60 +261,6 @@ def _scene_figures(out, scene, raw, images, evaluation, boxes) -> dict[str, Any]
     return method_figures(
         out, out / "evaluation" / scene, images, evaluation, centres, side, edge=boxes is not None
     )
-
-
-def method_figures(
-    out: Path,
-    folder: Path,
-    images: dict[str, np.ndarray],
-    evaluation: Any,
-    centres: list[tuple[int, int]],
-    side: int,
-    *,
-    edge: bool,
-) -> dict[str, Any]:
-    """Every method's image on one display scale, zoomed crops and the edge-error chart.
-
-    Parameters
-    ----------
-    out : Path
-        The report's folder (figure paths are returned relative to it).
-    folder : Path
-        Where the PNGs go.
-    images : dict of str to ndarray (rows, cols, 3)
-        Colour images by method (``"bilinear"`` among them: the display scale's reference).
-    evaluation : reconstruction.Evaluation
-        Their scores (the edge chart needs residual aberration).
-    centres : list of (row, col)
-        Centres of the zoomed crops, px.
-    side : int
-        Crop side, px.
-    edge : bool
-        Draw the edge-strip RMSE chart.
-    """
-    display = display_on_one_scale(images, reference="bilinear")
-    previews = []
-    for name, image in display.items():
-        path = folder / f"{file_stem(name)}.png"
-        write_png(path, image)
-        previews.append((str(path.relative_to(out)), name))
-    rows, cols = next(iter(images.values())).shape[:2]
-    windows = [
-        (int(np.clip(r - side // 2, 0, rows - side)), int(np.clip(c - side // 2, 0, cols - side)),
-         side)
-        for r, c in centres
-    ]  # fmt: skip
-    chosen = ["bilinear", "malvar + warp", "menon", "menon + warp"]
-    chosen += [n for n in display if n.startswith("spectral")]
-    plot_crops({n: display[n] for n in chosen if n in display}, windows, folder / "crops.png")
-    figures = {"previews": previews, "crops": str((folder / "crops.png").relative_to(out))}
-    if edge:
-        rmse = {n: s.residual.edge.rmse for n, s in evaluation.scores.items() if s.residual}
-        plot_channel_errors(
-            rmse, folder / "edge_rmse.png", ylabel="edge-strip RMSE (fraction of raw mean)"
-        )
-        figures["edge"] = str((folder / "edge_rmse.png").relative_to(out))
-    return figures
 
 
 def _patch_spectra(out, world, scene, boxes, ours) -> str:
@@ -561,10 +353,11 @@ def _write_report(report, rigs, rig_file, shape, times, captures, models, recons
     )
     report.heading("Reconstruction")
     report.paragraph(
-        "Problem (3.1): the edge-guided L2 prior (EdgeL2), non-negativity, the calibrated "
-        "dispersion model, weights by the demosaicing criterion; patch-wise on Dask with "
-        "flat patches and negligible dispersion skipped. The §6.3 variant reconstructs "
-        "relative to a smooth spectrum fitted to the image's mean colour; the §3.9.2 variant "
+        "The spectral reconstruction: the edge-guided L2 prior (EdgeL2), non-negativity, the "
+        "calibrated dispersion model, weights by the demosaicing criterion; patch-wise on "
+        "Dask with flat patches and negligible dispersion skipped. The mean-colour variant "
+        "reconstructs relative to a smooth spectrum fitted to the image's mean colour; the "
+        "warp variant "
         "solves without Φ and then warps every band onto the 600 nm geometry with the same "
         "(inverted) model."
     )
@@ -589,9 +382,9 @@ def _write_report(report, rigs, rig_file, shape, times, captures, models, recons
         report.paragraph(
             "Errors are fractions of the mean signal. Edge/centre RMSE: residual "
             "chromatic aberration in 12-px strips inside the patch edges and in the patch "
-            "centres against an ideal image synthesised from the raw patch centres (§4.4.3). "
+            "centres against an ideal image synthesised from the raw patch centres. "
             "Colour and spectral RMSE: against the simulator's dispersion-free truth, "
-            "registered per channel/band (4.9)."
+            "registered per channel/band."
         )
         header, rows = evaluation.table()
         report.table(header, rows)

@@ -185,7 +185,7 @@ def resolve_choices(options: Any, *, facts: ImageFacts | None = None) -> Choices
     entries["weights"] = Choice(
         o.weights if isinstance(o.weights, str) else list(o.weights),
         "default" if o.weights == "auto:dmc" else "given",
-        f"weights by Algorithm 3 with the {criterion} criterion"
+        f"weights chosen on the most textured patch by the {criterion} criterion"
         if criterion != "fixed"
         else "fixed weights",
         {"criterion": criterion},
@@ -237,12 +237,12 @@ def image_facts(
 
 # -- the rules --------------------------------------------------------------------------
 CORRECTION_REASONS = {
-    "model": "Φ inside the problem (3.1)",
-    "warp": "solve without Φ, then warp (§3.9.2)",
+    "model": "the dispersion inside the reconstruction problem",
+    "warp": "solve without the dispersion, then warp the result",
 }
 INTERPOLATION_REASONS = {
     "cubic": "Keys' cubic convolution: shifts without bilinear's blur",
-    "bilinear": "bilinear sampling, as the thesis (§3.2.5)",
+    "bilinear": "bilinear sampling, as the thesis",
 }
 EXTRAPOLATION_REASONS = {
     "clamp": "the model is evaluated inside its calibrated domain only",
@@ -259,14 +259,14 @@ def _named(value: str, default: str, reasons: Mapping[str, str]) -> Choice:
 def _bands(o: Any) -> Choice:
     space = o.space
     if space.kind == "colour":
-        return Choice(None, "follows", "colour latent image (3.27): R, G, B, no bands")
+        return Choice(None, "follows", "direct colour estimation: R, G, B, no bands")
     centres = [float(v) for v in space.centres_nm]
     evidence = {"count": len(centres), "first_nm": centres[0], "last_nm": centres[-1]}
     if o.bands is not None:
         return Choice(centres, "given", "as asked", evidence)
     if space.kernel == DISCRETE:
         return Choice(centres, "follows", "the response's own bands (a sensor map)", evidence)
-    return Choice(centres, "default", "from the response's bandlimit (§3.3.2)", evidence)
+    return Choice(centres, "default", "from the camera response's bandlimit", evidence)
 
 
 def _smoothness(o: Any, facts: ImageFacts | None) -> Choice:
@@ -289,18 +289,19 @@ def _reference(o: Any) -> Choice:
     if o.reference != "auto":
         return Choice(o.reference, "given", "as asked")
     if o.latent != "spectral":
-        return Choice(None, "follows", "a colour latent image: the plain problem (3.27)")
+        return Choice(None, "follows", "direct colour estimation: no reference spectrum")
     green = unlevelled_green(o.space)
     if green is not None:
         return Choice(
             "mean-colour",
             "follows",
             "the response leaves the bands' scales unknown (a sensor map with the same G in "
-            "every band, the thesis' normalisation), so the bands are put on one scale by a "
-            "smooth spectrum with the image's mean colour (§6.3)",
+            "every band, the thesis' normalisation), so the bands are put on one scale by the "
+            "reference spectrum from the mean colour: a smooth spectrum with the image's "
+            "mean colour",
             {"green_per_band": green},
         )
-    return Choice(None, "default", "the response gives the bands' scales: the plain problem (3.1)")
+    return Choice(None, "default", "the response gives the bands' scales: no reference spectrum")
 
 
 def unlevelled_green(space: LatentSpace) -> float | None:

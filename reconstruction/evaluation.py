@@ -234,7 +234,7 @@ def evaluate(
         scores[name] = Score(name, seconds.get(name), residual, colour, spectral_score)
     notes = [
         "Errors are fractions of the raw image's mean; against a truth, of the truth's mean, "
-        f"after registering each channel/band (4.9), leaving out a {border_px}-px border.",
+        f"after registering each channel/band, leaving out a {border_px}-px border.",
     ]
     return Evaluation(scores, scale, notes)
 

@@ -182,15 +182,15 @@ OPTION_TABLE: tuple[OptionSpec, ...] = (
         "equally spaced band centres, nm, e.g. 400,450,500,550,600,650,700",
         optional=True,
         metavar="NM,NM,…",
-        default_help="chosen from the camera response's bandlimit (thesis §3.3.2), or a "
-        "sensor map's own bands",
+        default_help="chosen from the camera response's bandlimit, or a sensor map's own bands",
     ),
     OptionSpec(
         "correction",
         "--correction",
         "choice",
-        "model: Φ inside the problem (3.1); warp: thesis §3.9.2, solve without Φ and warp the "
-        "result onto the reference band (a model of either direction)",
+        "model: the dispersion inside the reconstruction problem; warp: solve without the "
+        "dispersion, then warp the result onto the reference band (a model of either "
+        "direction)",
         choices=CORRECTIONS,
         metavar="|".join(CORRECTIONS),
     ),
@@ -209,7 +209,7 @@ OPTION_TABLE: tuple[OptionSpec, ...] = (
         "--interpolation",
         "choice",
         "sampling weights of Φ: Keys' cubic convolution, which shifts without bilinear's "
-        "blur and the overshoot it causes at edges, or bilinear (thesis §3.2.5), faster",
+        "blur and the overshoot it causes at edges, or bilinear (as the thesis), faster",
         choices=INTERPOLATIONS,
         metavar="|".join(INTERPOLATIONS),
     ),
@@ -218,7 +218,7 @@ OPTION_TABLE: tuple[OptionSpec, ...] = (
         "--prior",
         "choice",
         "EdgeL2: the L2 prior weighted by the raw image's own edges, which fills unsampled "
-        "pixels along edges rather than across them; a prior of thesis Table 3.1 ("
+        "pixels along edges rather than across them; a prior of the thesis ("
         + ", ".join(p for p in PRIORS if p not in ("EdgeL2", "VTV"))
         + "); or VTV, vectorial total variation (edges shared by all bands, slower)",
         choices=tuple(PRIORS),
@@ -262,7 +262,7 @@ OPTION_TABLE: tuple[OptionSpec, ...] = (
         "weights",
         "--weights",
         "text",
-        "regularisation weights: chosen by Algorithm 3 on the most textured patch with the "
+        "regularisation weights: chosen by a search on the most textured patch with the "
         "demosaicing criterion against bilinear demosaicing (auto:dmc, the thesis') or "
         "against Menon's or Malvar's demosaic (auto:dmc-menon, auto:dmc-malvar: sharper "
         "weights for --prior VTV; not for narrow-band light), or the minimum-distance "
@@ -273,7 +273,8 @@ OPTION_TABLE: tuple[OptionSpec, ...] = (
         "latent",
         "--latent",
         "choice",
-        "spectral: problem (3.1); colour: direct raw-colour estimation (3.27)",
+        "spectral: a spectral image, one channel per band; colour: direct colour estimation, "
+        "the camera's R, G, B without the dispersion",
         choices=LATENTS,
         metavar="|".join(LATENTS),
     ),
@@ -281,8 +282,9 @@ OPTION_TABLE: tuple[OptionSpec, ...] = (
         "reference",
         "--reference",
         "choice",
-        "mean-colour: reconstruct relative to a smooth spectrum fitted to the image's mean "
-        "colour (thesis §6.3), which puts the bands on one scale; none: the plain problem; "
+        "mean-colour: the reference spectrum from the mean colour, a smooth spectrum fitted "
+        "to the image's mean colour that the image is reconstructed relative to, which puts "
+        "the bands on one scale; none: the plain problem; "
         "auto: mean-colour where the response leaves the bands' scales unknown (a sensor map "
         "with the same G in every band, the thesis' normalisation), else none",
         choices=REFERENCES,

@@ -289,9 +289,7 @@ def prior_terms(name: str, *, channels: int | None = None) -> tuple[PriorTerm, .
         Unknown name, or a spectral-gradient term on an image with one channel.
     """
     if name not in PRIORS:
-        raise DataError(
-            f"unknown prior {name!r}; use one of {', '.join(PRIORS)} (thesis Table 3.1)"
-        )
+        raise DataError(f"unknown prior {name!r}; use one of {', '.join(PRIORS)}")
     terms = PRIORS[name]
     if (
         channels is not None

@@ -19,7 +19,14 @@ ROOT_PACKAGES = ("labkit", "calibration", "reconstruction")
 
 #: Application modules: they load the stack of each command or benchmark on use, so that
 #: ``labkit --help`` and every command start without importing what they do not run.
-DEFERRING_MODULES = ("labkit.cli", "labkit.bench", "labkit.demo", "labkit.demo_real")
+DEFERRING_MODULES = (
+    "labkit.cli",
+    "labkit.bench",
+    "labkit.demo",
+    "labkit.demo_real",
+    "labkit.real_chart",
+    "labkit.demo_steps",
+)
 
 #: Imports inside functions of library modules, and why each is there.
 DEFERRED_IMPORTS = {

@@ -27,8 +27,8 @@ def test_demo_runs_the_whole_job_with_known_answers(demo_out: Path) -> None:
     assert set(results["seconds"]) == {"capture", "hdr", "calibrate", "reconstruct", "evaluate"}
     assert results["calibration"]["spectral"]["error_vs_lens_px"]["rms_px"] < 0.05
     assert set(results["reconstruction"]) == {
-        "colorchecker", "texture", "colorchecker (§6.3 mean-colour)",
-        "colorchecker (§3.9.2 warp)",
+        "colorchecker", "texture", "colorchecker (reference spectrum from the mean colour)",
+        "colorchecker (solved without the dispersion, then warped)",
     }  # fmt: skip
     chart = results["evaluation"]["colorchecker"]["methods"]
     ours = chart["spectral: colorchecker"]

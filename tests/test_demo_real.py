@@ -11,9 +11,6 @@ import pytest
 from _report_check import images_in_chromium
 
 from labkit.cli import main
-from labkit.demo_real import patch_centres, patch_spectral_errors
-from labkit.errors import DataError
-from labkit.spectra import colorchecker_reflectances
 
 
 @pytest.fixture(scope="module")
@@ -43,7 +40,7 @@ def test_real_demo_reproduces_the_measured_figures(real_out: Path) -> None:
     assert patches["multispectral"]["mrae"] == pytest.approx(0.215, abs=0.005)
     assert patches["multispectral"]["rmse"] == pytest.approx(0.0666, abs=0.003)
     assert patches["defaults"]["mrae"] < 0.23
-    assert patches["§6.3 mean-colour, σ = 0"]["mrae"] < 0.25
+    assert patches["reference spectrum from the mean colour, σ = 0"]["mrae"] < 0.25
     # per pixel against the multispectral image (measured: the chart 0.135, the §6.3
     # variant at σ = 0 0.193); the report tabulates them
     pixels = results["evaluation"]["pixels"]
@@ -79,44 +76,6 @@ def test_a_folder_that_is_not_a_real_capture_set_is_refused(tmp_path: Path, caps
     assert not out.exists()
     assert main(["demo", "--data", str(tmp_path / "data"), "--out", str(out)]) == 2
     assert "--real" in capsys.readouterr().err and not out.exists()
-
-
-def test_patch_centres_are_the_inner_half_of_each_label() -> None:
-    labels = np.zeros((120, 180), dtype=np.int32)
-    for k in range(24):
-        row, col = divmod(k, 6)
-        labels[row * 30 + 5 : row * 30 + 25, col * 30 + 5 : col * 30 + 25] = k + 1
-    centres = patch_centres(labels)
-    assert len(centres) == 24
-    # a 20×20 square: the largest distance to the edge is 10 px; the inner half keeps ≥ 5
-    assert all(mask.sum() == 12 * 12 for mask in centres)
-    assert (
-        centres[7][40:50, 40:50].all()
-        and not centres[7][36, 36]
-        and not centres[6].any(where=labels != 7)
-    )
-    labels[labels == 13] = 0
-    with pytest.raises(DataError, match=r"patch\(es\) \[13\]"):
-        patch_centres(labels)
-
-
-def test_patch_spectral_errors_register_each_band() -> None:
-    """A cube whose patches are the measured reflectances times any per-band scale scores 0;
-    a 10 % bias on half of the patches scores about 0.05 MRAE."""
-    reflectances = colorchecker_reflectances("measured")
-    wavelengths = np.array([450.0, 500.0, 550.0, 600.0, 650.0])
-    truth = reflectances.resample(wavelengths).values.T
-    labels = np.repeat(np.repeat(np.arange(1, 25).reshape(4, 6), 10, axis=0), 10, axis=1)
-    centres = patch_centres(labels)
-    scale = np.array([3.0, 0.5, 7.0, 1.0, 0.02])
-    cube = (truth * scale)[labels - 1]
-    exact = patch_spectral_errors(cube, wavelengths, centres, reflectances)
-    assert exact["mrae"] < 1e-9 and exact["rmse"] < 1e-9
-    assert np.allclose(exact["estimate"], truth)
-    biased = cube.copy()
-    biased[labels <= 12] *= 1.1
-    errors = patch_spectral_errors(biased, wavelengths, centres, reflectances)
-    assert 0.03 < errors["mrae"] < 0.07
 
 
 def test_a_cropped_12_bit_copy_gives_the_same_figures(real_out: Path, tmp_path: Path) -> None:

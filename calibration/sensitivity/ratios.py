@@ -116,7 +116,7 @@ def channel_sensitivity(
         green_level=[r["green_level"] for r in results],
         source="measured",
         labkit={
-            "method": "thesis Algorithm 12 (first principal component of neighbour pairs)",
+            "method": "first principal component of neighbour pairs (the thesis' ratios)",
             "saturation": saturation,
             "gradient_quantile": gradient_quantile,
             "min_pairs": min_pairs,

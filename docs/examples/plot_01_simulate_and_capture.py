@@ -17,25 +17,24 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
-from labkit.demo import demo_rigs
 from labkit.io.tiff import read_raw_tiff
 from labkit.protocol import Engine, build_plan
 from labkit.protocol.hardware import open_hardware
-from labkit.rig import default_rig_path
+from labkit.rig import default_rig_path, load_rig
 from labkit.session import Session
-from labkit.sim import SimCamera, SimulatedRig
+from labkit.sim import SimCamera, SimulatedRig, simulated_plans
 
 SHAPE = (128, 160)  # sensor rows, cols (the real simulated sensor is 2048 × 2448)
 
 # %%
 # The rig and its scenes
 # ----------------------
-# :func:`labkit.demo.demo_rigs` loads ``rigs/simulated.yaml`` with the sensor cropped to
-# `SHAPE` and two capture plans: the disk pattern under every filter (for calibration)
-# and the ColorChecker and a textured scene unfiltered (to reconstruct). The noise-free
+# :func:`labkit.sim.simulated_plans` makes two capture plans of ``rigs/simulated.yaml``
+# with the sensor cropped to `SHAPE`: the disk pattern under every filter (for
+# calibration) and the ColorChecker and a textured scene unfiltered (to reconstruct). The noise-free
 # irradiance of a scene is :meth:`SimulatedRig.irradiance <labkit.sim.SimulatedRig.irradiance>`,
 # a Bayer mosaic in electrons per second.
-rigs = demo_rigs(default_rig_path(), SHAPE)
+rigs = simulated_plans(load_rig(default_rig_path()), SHAPE)
 rig = rigs["scenes"]
 world = SimulatedRig(rig)
 print(rig.name, "—", world.rig.cfa, "sensor", world.shape)

@@ -17,18 +17,18 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from calibration import calibrate_dispersion, filter_bands, load_scene_hdr
-from labkit.demo import demo_rigs
 from labkit.hdr import run_hdr
 from labkit.protocol import Engine
 from labkit.protocol.hardware import open_hardware
-from labkit.rig import default_rig_path
+from labkit.rig import default_rig_path, load_rig
 from labkit.session import Session
-from labkit.sim import SimulatedRig
+from labkit.sim import SimulatedRig, simulated_plans
 from labkit.sim.truth import model_error
 
 workspace = tempfile.TemporaryDirectory(prefix="labkit-gallery-")  # removed at the end
 out = Path(workspace.name)
-rig = demo_rigs(default_rig_path(), (192, 256))["calibration"]  # disks, every filter
+plans = simulated_plans(load_rig(default_rig_path()), (192, 256))
+rig = plans["calibration"]  # disks, every filter
 
 # %%
 # Capture and merge

@@ -17,20 +17,19 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from calibration import calibrate_dispersion, filter_bands, load_scene_hdr
-from labkit.demo import demo_rigs
 from labkit.hdr import run_hdr
 from labkit.io import read_raw_exr, spectral_preview
 from labkit.protocol import Engine
 from labkit.protocol.hardware import open_hardware
-from labkit.rig import default_rig_path
+from labkit.rig import default_rig_path, load_rig
 from labkit.session import Session
-from labkit.sim import SimulatedRig, colorchecker_patch_boxes
+from labkit.sim import SimulatedRig, colorchecker_patch_boxes, simulated_plans
 from labkit.sim.truth import spectral_truth
 from reconstruction import ReconstructOptions, reconstruct
 
 workspace = tempfile.TemporaryDirectory(prefix="labkit-gallery-")  # removed at the end
 out = Path(workspace.name)
-rigs = demo_rigs(default_rig_path(), (192, 256))  # "calibration" and "scenes" plans
+rigs = simulated_plans(load_rig(default_rig_path()), (192, 256))  # "calibration" and "scenes" plans
 world = SimulatedRig(rigs["scenes"])
 
 # %%

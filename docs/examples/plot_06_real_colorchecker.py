@@ -6,7 +6,7 @@ labkit ships real captures from the thesis' lab (:func:`labkit.data.real_colorch
 a ColorChecker under seven bandpass filters at seven exposures and dark frames, from a
 FLIR Flea3 (8-bit, 342 × 408, GBRG), with the chart's patches labelled. The lab has no
 raw image of this chart whose truth is known, so, as in thesis §4.2.4, the filtered
-images make one: :func:`labkit.demo_real.prepare_real_inputs` imports the frames into a
+images make one: :func:`labkit.real_chart.prepare_real_inputs` imports the frames into a
 session (their levels read from the files), merges them into HDR images, measures the
 sensor map (the camera's R/G and B/G per band, Algorithm 12), synthesises a
 multispectral and a raw image from them (Algorithm 13) and calibrates the dispersion
@@ -22,9 +22,8 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from labkit.data import real_colorchecker
-from labkit.demo_real import patch_spectral_errors, prepare_real_inputs
 from labkit.io import display_on_one_scale, spectral_preview
-from labkit.spectra import colorchecker_reflectances
+from labkit.real_chart import prepare_real_inputs
 from reconstruction import reconstruct
 
 workspace = tempfile.TemporaryDirectory(prefix="labkit-gallery-")  # removed at the end
@@ -44,8 +43,8 @@ for band, row in real.hdr["summary"].items():
 # %%
 # The sensor map: how strongly Red and Blue respond against Green in each band, measured
 # from the filtered images, against the rig's stand-in camera response.
-sensitivity = real.sensor["sensitivity"]
-nominal = {row["wavelength_nm"]: row for row in real.sensor["summary"]["bands"]}
+sensitivity = real.sensor.sensitivity
+nominal = {row["wavelength_nm"]: row for row in real.sensor.summary["bands"]}
 figure, axis = plt.subplots(figsize=(6, 3.5))
 wavelengths = sensitivity.wavelengths_nm
 axis.semilogy(wavelengths, sensitivity.r_over_g, "o-", color="tab:red", label="R/G measured")
@@ -62,11 +61,12 @@ figure.tight_layout()
 # %%
 # Reconstruct
 # -----------
-# :meth:`~labkit.demo_real.RealInputs.reconstruct_options` gives the CFA layout, the sensor
+# :meth:`~labkit.real_chart.RealInputs.reconstruct_options` gives the CFA layout, the sensor
 # map as the response, its bands and the spectral dispersion model; the rest are the
-# defaults.
+# defaults. Its :attr:`~labkit.real_chart.RealInputs.scorer` scores the result against the
+# chart (:class:`reconstruction.chart_scores.ChartScorer`).
 result = reconstruct(real.synthesis.raw.raw, **real.reconstruct_options())
-score = real.score(result)
+score = real.scorer.score(result)
 print({name: round(value, 4) for name, value in score.items()})
 
 multispectral = real.synthesis.multispectral
@@ -88,14 +88,10 @@ figure.tight_layout()
 # scaled by least squares over the 24 patches (eq. 4.9). MRAE is the mean relative
 # absolute error over patches and bands (the thesis' best reconstruction at full
 # resolution: 0.258).
-reflectances = colorchecker_reflectances("measured")
+reflectances = real.scorer.reflectances
 errors = {
-    "multispectral": patch_spectral_errors(
-        multispectral.cube, multispectral.wavelengths_nm, real.centres, reflectances
-    ),
-    "reconstruction": patch_spectral_errors(
-        result.spectral, result.wavelengths_nm, real.centres, reflectances
-    ),
+    "multispectral": real.scorer.patch_errors(multispectral.cube, multispectral.wavelengths_nm),
+    "reconstruction": real.scorer.patch_errors(result.spectral, result.wavelengths_nm),
 }
 for name, e in errors.items():
     print(f"{name:15s} MRAE {e['mrae']:.3f}  RMSE {e['rmse']:.4f}")

@@ -397,10 +397,10 @@ def real_rows(work: Path) -> list[Row]:
     """The real ColorChecker rows: whole image (levelled and G = 1 sensor map; Φ at the
     nominal wavelengths, and calibrated with the 400 nm filter) and two quadrants with the
     whole frame's model moved to the crop."""
-    from labkit.demo_real import prepare_real_inputs
+    from labkit.real_chart import prepare_real_inputs
 
     real = prepare_real_inputs(work)
-    sensitivity = real.sensor["sensitivity"]
+    sensitivity = real.sensor.sensitivity
     g1 = replace(sensitivity, green_level=np.full(len(sensitivity), np.nan)).as_response()
     rows = real.synthesis.raw.raw.shape
     whole = f"real ColorChecker {rows[1]}×{rows[0]}"
@@ -409,7 +409,7 @@ def real_rows(work: Path) -> list[Row]:
         _real_row(f"{whole}, G = 1 map", real, response=g1),
         _real_row(
             f"{whole}, levelled map, Φ at the filters' nominal wavelengths",
-            with_spectral_model(real, without_filter_record(real.models["spectral"])),
+            with_spectral_model(real, without_filter_record(real.models.spectral)),
         ),
         _real_row(
             f"{whole}, levelled map, Φ calibrated with the 400 nm filter",
@@ -431,7 +431,7 @@ def _real_row(name: str, real: Any, *, response: Any = None) -> Row:
 
     def score(result: Any) -> dict[str, float | None]:
         if whole:
-            s = real.score(result)
+            s = real.scorer.score(result)
             return {
                 "spectral_rmse": s["spectral_rmse"],
                 "mrae": s["mrae"],
@@ -439,7 +439,7 @@ def _real_row(name: str, real: Any, *, response: Any = None) -> Row:
                 "edge_rmse_B": s["edge_rmse_B"],
             }
         return {
-            "spectral_rmse": real.pixel_errors(result)["chart"],
+            "spectral_rmse": real.scorer.pixel_errors(result)["chart"],
             **_real_edges(real, {"x": result.raw_colour})["x"],
         }
 
@@ -447,9 +447,7 @@ def _real_row(name: str, real: Any, *, response: Any = None) -> Row:
         from reconstruction import baseline_images
 
         raw = real.synthesis.raw
-        images, _ = baseline_images(
-            raw.raw, cfa=raw.cfa, colour_dispersion=real.models.get("colour")
-        )
+        images, _ = baseline_images(raw.raw, cfa=raw.cfa, colour_dispersion=real.models.colour)
         return _real_edges(real, images)
 
     measures = ("spectral_rmse", "mrae") if whole else ("spectral_rmse",)
@@ -459,16 +457,16 @@ def _real_row(name: str, real: Any, *, response: Any = None) -> Row:
 
 def _real_edges(real: Any, images: dict[str, np.ndarray]) -> dict[str, dict[str, float | None]]:
     """Edge-strip RMSE R and B of each raw colour image of `real`'s chart, by name
-    (:meth:`labkit.demo_real.RealInputs.edge_rmse`)."""
+    (:meth:`reconstruction.chart_scores.ChartScorer.edge_rmse`)."""
     return {
         name: {f"edge_rmse_{c}": edge[c] for c in "RB"}
-        for name, edge in real.edge_rmse(images).items()
+        for name, edge in real.scorer.edge_rmse(images).items()
     }
 
 
 def with_spectral_model(real: Any, model: Any) -> Any:
-    """`real` (:class:`labkit.demo_real.RealInputs`) with another spectral dispersion model."""
-    return replace(real, models={**real.models, "spectral": model})
+    """`real` (:class:`labkit.real_chart.RealInputs`) with another spectral dispersion model."""
+    return replace(real, models=replace(real.models, spectral=model))
 
 
 def without_filter_record(model: Any) -> Any:
@@ -484,7 +482,7 @@ def calibrated_with_every_filter(real: Any, hdr: Path) -> Any:
     calibrates it but keeping every filter, however impure its light (``min_purity=0``:
     the 400 nm filter, whose light leaks, too)."""
     from calibration import load_filtered_hdr
-    from labkit.demo_real import calibrate_spectral
+    from labkit.real_chart import calibrate_spectral
     from labkit.rig import load_rig
 
     images = load_filtered_hdr(hdr)[real.scene]
@@ -492,7 +490,7 @@ def calibrated_with_every_filter(real: Any, hdr: Path) -> Any:
 
 
 def crop_real(real: Any, origin: tuple[int, int], shape: tuple[int, int]) -> Any:
-    """`real` (:class:`labkit.demo_real.RealInputs`) cut to the `shape` px window at
+    """`real` (:class:`labkit.real_chart.RealInputs`) cut to the `shape` px window at
     `origin` (even, so that the Bayer phase is kept), with the whole sensor's dispersion
     models moved to the window (:meth:`calibration.DispersionModel.cropped`), as a user who
     calibrated the sensor once and reconstructs a crop would. (Calibrating on the crop's
@@ -511,9 +509,11 @@ def crop_real(real: Any, origin: tuple[int, int], shape: tuple[int, int]) -> Any
         synthesis.rgb[window],
         replace(synthesis.raw, raw=synthesis.raw.raw[window]),
     )
-    models = {**real.models}
-    for name in ("spectral", "colour"):
-        models[name] = real.models[name].cropped(origin, shape)
+    models = replace(
+        real.models,
+        spectral=real.models.spectral.cropped(origin, shape),
+        colour=real.models.colour.cropped(origin, shape),
+    )
     return replace(real, synthesis=cropped, models=models, labels=real.labels[window])
 
 

@@ -28,8 +28,11 @@ MAIN_VARIANTS: tuple[tuple[str, dict[str, Any]], ...] = (
     ("defaults", {}),
     ("no band balance (every band alike)", {"band_balance": 0.0}),
     ("σ = 0 (thesis)", {"spectral_smoothness": 0.0}),
-    ("§6.3 mean-colour reference", {"reference": "mean-colour"}),
-    ("§6.3 mean-colour reference, σ = 0", {"reference": "mean-colour", "spectral_smoothness": 0.0}),
+    ("reference spectrum from the mean colour", {"reference": "mean-colour"}),
+    (
+        "reference spectrum from the mean colour, σ = 0",
+        {"reference": "mean-colour", "spectral_smoothness": 0.0},
+    ),
     ("no non-negativity", {"nonneg": False}),
     ("L2 prior (the thesis')", {"prior": "L2", "band_balance": 0.0}),
     ("bilinear Φ (the thesis')", {"interpolation": "bilinear"}),
@@ -66,7 +69,7 @@ def real_measurements(
     baselines : dict
         Edge-strip RMSE (R, G, B) of the demosaicing baselines on the same raw image.
     """
-    from labkit.demo_real import prepare_real_inputs
+    from labkit.real_chart import prepare_real_inputs
     from reconstruction import baseline_images, evaluate, reconstruct
 
     results = []
@@ -94,7 +97,7 @@ def real_measurements(
                     extra={
                         "variant": label,
                         "image": f"{cols}×{rows}",
-                        **real.score(result),
+                        **real.scorer.score(result),
                         "weights": [float(w) for w in log["weights"]["values"]],
                         "weight_s": float(log["weights"]["seconds"]),
                         "patches": log["patches"]["count"],
@@ -145,7 +148,7 @@ def comparison_table(real: list[Measurement], simulated: list[Measurement]) -> T
         "Main variants on both kinds of data. Real: the thesis' ColorChecker frames "
         "(synthetic raw image, sensor map as response), patch-centre MRAE and RMSE against "
         "the ASD reflectances. Simulated: the 344×408 ColorChecker, spectral RMSE (relative "
-        "to the mean truth) and MRAE per pixel. Edge RMSE R/G/B: §4.4.3 edge strips of the "
+        "to the mean truth) and MRAE per pixel. Edge RMSE R/G/B: the edge strips of the "
         "raw colour image. Real spectral RMSE: per pixel over the chart (its patches and "
         "the 12 px around them) against the multispectral image moved into the "
         "reconstruction's geometry. Spectral strips/centres/surround: the spectral RMSE in "

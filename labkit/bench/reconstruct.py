@@ -95,7 +95,7 @@ SOLVER_VARIANTS: tuple[tuple[str, dict[str, Any], int], ...] = (
     ("Lap2, 7 bands", {"prior": "Lap2"}, 7),
     ("L1, 7 bands", {"prior": "L1"}, 7),
     ("L2, 7 bands, no Φ", {"prior": "L2", "dispersion": None}, 7),
-    ("L2, 7 bands, Φ-free then warp (§3.9.2)", {"prior": "L2", "correction": "warp"}, 7),
+    ("L2, 7 bands, solved without Φ, then warped", {"prior": "L2", "correction": "warp"}, 7),
     ("L2, 7 bands, exact (active-set finish)", {"prior": "L2", "exact": True}, 7),
     ("L2, 7 bands, bilinear Φ", {"prior": "L2", "interpolation": "bilinear"}, 7),
     ("L2, 7 bands, σ = 0 (thesis)", {"prior": "L2", "spectral_smoothness": 0.0}, 7),
@@ -280,12 +280,12 @@ def _notes(
         f"σ = {main_case['blur_px']:g} px; the default rig's is measured on the real frames' "
         "patch edges) plus Gaussian noise of "
         f"{NOISE:g} × the brightest raw value; Φ from an analytic to_reference model of the "
-        "same lens. Spectral errors are registered per band (4.9) and relative to the mean "
+        "same lens. Spectral errors are registered per band and relative to the mean "
         "truth; colour RMSE is relative to the brightest true raw colour.",
         f"Variants reuse the weight the target case chose ({weights}) so that they compare "
         "solver settings, not weight selection.",
         skipping_line(skipping_results[-2], skipping_results[-1]),
-        "Residual aberration (§4.4.3, edge-strip RMSE R/G/B, ColorChecker rows) of the "
+        "Residual aberration (edge-strip RMSE R/G/B, ColorChecker rows) of the "
         "demosaicing baselines: "
         + "; ".join(
             f"{method} " + "/".join(f"{v:.4f}" for v in edge_errors(main_case, image).values())

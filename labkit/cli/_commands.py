@@ -28,16 +28,14 @@ COMMANDS: dict[str, Command] = {
         "run the exposure-bracketing + dark-frame protocol into a session folder",
     ),
     "session": Command("labkit.cli.session", "inspect or import capture sessions"),
-    "hdr": Command(
-        "labkit.cli.hdr", "merge exposure brackets into HDR raw mosaics (thesis Algorithm 11)"
-    ),
+    "hdr": Command("labkit.cli.hdr", "merge exposure brackets into HDR raw mosaics"),
     "target": Command(
         "labkit.cli.target", "a printable disk chart for dispersion calibration (SVG + PDF)"
     ),
     "calibrate": Command("labkit.cli.calibrate", "calibrate the camera and lens from HDR images"),
     "synthesize": Command(
         "labkit.cli.synthesize",
-        "multispectral + synthetic RGB/raw images from filtered HDR images (Algorithm 13)",
+        "multispectral + synthetic RGB/raw images from filtered HDR images",
     ),
     "dispersion": Command("labkit.cli.dispersion", "inspect dispersion models"),
     "correct": Command("labkit.cli.correct", "correct images for lateral chromatic aberration"),

@@ -28,7 +28,7 @@ def register(commands: Commands) -> None:
     actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
     sensitivity = actions.add_parser(
         "sensitivity",
-        help="R/G and B/G sensitivity ratios per filter band (thesis Algorithm 12)",
+        help="R/G and B/G sensitivity ratios per filter band",
         description="Fit the ratios between neighbouring Green–Red and Green–Blue pixels in "
         "textureless, unsaturated regions of every filtered-light HDR image (first principal "
         "component, all scenes of a band pooled). Writes DIR/sensitivity.csv, "
@@ -67,7 +67,7 @@ def register(commands: Commands) -> None:
 def _register_vignetting(actions: argparse._SubParsersAction) -> None:
     parser = actions.add_parser(
         "vignetting",
-        help="intensity fall-off model (thesis §3.2.2)",
+        help="intensity fall-off model",
         description="Fit a bivariate polynomial (degree 0–5 by 10-fold cross-validation, "
         "normalised coordinates and intensities) to the Green pixels of one HDR image inside "
         "a mask: a user mask, or the paper background of the disk pattern when no mask is "
@@ -93,7 +93,7 @@ def _register_vignetting(actions: argparse._SubParsersAction) -> None:
 def _register_dispersion(actions: argparse._SubParsersAction) -> None:
     parser = actions.add_parser(
         "dispersion",
-        help="lateral chromatic aberration model (thesis §3.2, Algorithms 1–2)",
+        help="lateral chromatic aberration model",
         description="Find keypoints (disk centres or patch-wise registration) in the HDR "
         "images of one scene and fit a dispersion model: a trivariate model in (x, y, λ) "
         "between filter bands, or with --reference G bivariate models of the Red and Blue "

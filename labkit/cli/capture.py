@@ -17,7 +17,7 @@ def register(commands: Commands) -> None:
     """Add ``labkit capture``."""
     parser = commands.add_parser(
         "capture",
-        description="Run the rig's capture plan (thesis Algorithm 10): for every scene, the "
+        description="Run the rig's capture plan: for every scene, the "
         "open slot and each filter, grab the replicates at every exposure time (or at "
         "auto-bracketed ones), then dark frames for every exposure used. Frames are stored "
         "crash-safely; running the same command on an unfinished session resumes it, "

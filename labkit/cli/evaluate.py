@@ -11,7 +11,7 @@ from labkit.cli._commands import Commands
 from labkit.cli._options import add_cfa_option, add_extrapolation_option, model_domain
 
 DESCRIPTION = """\
-Score colour images of one raw image (thesis §4.4, §4.6). RAW is a raw Bayer mosaic: a raw
+Score colour images of one raw image. RAW is a raw Bayer mosaic: a raw
 EXR (from `labkit hdr`, or from other software: channel 'raw' or the only channel), a
 single-channel uint8/uint16/float TIFF or PNG (integers scaled by the container's maximum)
 or a camera raw file read by LibRaw (DNG, NEF, CR2, CR3, ARW, ORF, RW2, PEF, …; black level
@@ -21,7 +21,7 @@ it. Runs the demosaicing baselines
 Red and Blue onto Green), adds the images given with --image (e.g. the raw_colour.exr of
 `labkit reconstruct`), and measures:
 
-  - residual chromatic aberration (§4.4.3) in 12-px strips inside the patch edges of a
+  - residual chromatic aberration in 12-px strips inside the patch edges of a
     ColorChecker-like chart, given its geometry: --labels (a label image, 0 = background,
     k = patch k) or --scene NAME of a simulated rig (--rig);
   - colour errors against --truth-colour (an RGB EXR of the aberration-free image) and,

@@ -40,7 +40,7 @@ def register(commands: Commands) -> None:
         "--method",
         choices=("thesis", "noise"),
         default="thesis",
-        help="thesis: the weights of Algorithm 11 (eroded blooming weight, local weight); "
+        help="thesis: the thesis' weights (eroded blooming weight, local weight); "
         "noise: inverse-variance weights from a Poisson–Gaussian noise model fitted to the "
         "replicates and darks, and a per-pixel variance channel (default: thesis)",
     )
@@ -60,7 +60,7 @@ def register(commands: Commands) -> None:
         "--factors",
         action="store_true",
         help="also print each image's scaling factors against the exposure-time ratios "
-        "(thesis Table 4.1; they are in OUT/hdr.yaml in any case)",
+        "(they are in OUT/hdr.yaml in any case)",
     )
     parser.add_argument(
         "--quiet",

@@ -41,7 +41,8 @@ def register(commands: Commands) -> None:
     parser = commands.add_parser(
         "reconstruct",
         description="Reconstruct a spectral image straight from a raw Bayer mosaic by solving "
-        "thesis problem (3.1), A = M·Ω·Φ·B with a regularising prior, patch by patch on Dask. "
+        "a regularised inverse problem (the camera, its colour filters and the lens' "
+        "dispersion as one linear model), patch by patch on Dask. "
         "RAW is a raw EXR (from `labkit hdr`, or from other software: channel 'raw' or the "
         "only channel), a single-channel uint8/uint16/float TIFF or PNG mosaic (integers "
         "scaled by the container's maximum), or a camera raw file read by LibRaw (DNG, NEF, "
@@ -53,7 +54,8 @@ def register(commands: Commands) -> None:
         "DIR/raw_colour.exr (the aberration-free image in raw camera colour), "
         "DIR/preview.png (CIE 1931 2° → sRGB, 99.5th percentile of luminance shown as "
         "white) and DIR/log.json (weights, iterations, times, what each patch skipped, the "
-        "arguments). With --latent colour the latent image is raw colour (thesis (3.27)) and "
+        "arguments). With --latent colour the latent image is raw colour (direct colour "
+        "estimation) and "
         "no spectral.exr is written. Bad input is refused before anything is written.",
     )
     parser.add_argument(
@@ -156,7 +158,7 @@ def _run(args: argparse.Namespace, job: _Job) -> int:
     bar = _ProgressBar(enabled=not args.quiet and sys.stderr.isatty())
     weights = job.options.weights
     if bar.enabled and isinstance(weights, str) and weights.startswith("auto:"):
-        print(f"choosing weights ({weights}, Algorithm 3)…", file=sys.stderr)
+        print(f"choosing weights ({weights})…", file=sys.stderr)
     try:
         from reconstruction import reconstruct
         from reconstruction.reconstruct import DomainWarning
@@ -438,7 +440,7 @@ def _print_summary(
     if args.dispersion is None:
         phi = "no dispersion model"
     elif log["dispersion"]["correction"] == "warp":
-        phi = f"solved without Φ, then warped ({log['warp_seconds']:.1f} s, §3.9.2)"
+        phi = f"solved without the dispersion, then warped ({log['warp_seconds']:.1f} s)"
     else:
         skipped = patches["phi_skipped_negligible"] + patches["phi_skipped_flat"]
         phi = (

@@ -13,7 +13,7 @@ def register(commands: Commands) -> None:
     parser = commands.add_parser(
         "target",
         description="Lay out the disk chart that `labkit calibrate dispersion` photographs "
-        "(black disks on white paper, thesis §3.2.1), sized for your camera and lens: at "
+        "(black disks on white paper), sized for your camera and lens: at "
         "the working distance each disk must span --radius-px and neighbours stand "
         "--pitch-px apart in the image (thin-lens magnification f / (D − f)). Writes "
         "DIR/chart.svg and DIR/chart.pdf at the paper's physical size, with a scale bar and "

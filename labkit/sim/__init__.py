@@ -9,6 +9,7 @@ from labkit.sim.camera import SimCamera
 from labkit.sim.elliptec import ElliptecSimulator
 from labkit.sim.fw102c import FW102CSimulator
 from labkit.sim.lens import SELLMEIER, Lens, refractive_index
+from labkit.sim.plans import simulated_plans
 from labkit.sim.render import render_irradiance
 from labkit.sim.scenes import (
     SCENES,
@@ -47,5 +48,6 @@ __all__ = [
     "natural_scene",
     "refractive_index",
     "render_irradiance",
+    "simulated_plans",
     "textured_scene",
 ]

@@ -313,7 +313,9 @@ class SpectralBasis(LinearOperator):
         samples = _checked_grid(sample_nm, "sample wavelengths", 1)
         spacing = _uniform_spacing(centres)
         if spacing is None:
-            raise DataError("band centres must be equally spaced (thesis §3.3.2)")
+            raise DataError(
+                "band centres must be equally spaced (the spectral basis is a shifted kernel)"
+            )
         low, high = centres[0] - MAX_EXTRAPOLATION_NM, centres[-1] + MAX_EXTRAPOLATION_NM
         if samples[0] < low or samples[-1] > high:
             raise DataError(

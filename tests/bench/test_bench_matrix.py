@@ -103,12 +103,12 @@ def test_the_real_model_variants_change_only_what_they_name(tmp_path: Path) -> N
     (the "700 nm" band at 700, not 682.6 nm), the rest of the model unchanged; calibrated
     with every filter, the 400 nm filter (27 % in-band: it was left out) is used, at its
     effective wavelength, and the calibrated range stays that of the pure filters."""
-    from labkit.demo_real import prepare_real_inputs
+    from labkit.real_chart import prepare_real_inputs
     from reconstruction.options import filter_light
 
     real = prepare_real_inputs(tmp_path)
-    model = real.models["spectral"]
-    centres = np.asarray(real.sensor["response"].wavelengths, dtype=float)
+    model = real.models.spectral
+    centres = np.asarray(real.sensor.response.wavelengths, dtype=float)
     effective = filter_light(centres, model)
     assert effective is not None and effective[-1] == pytest.approx(682.6, abs=0.5)
     nominal = matrix.without_filter_record(model)
@@ -123,7 +123,7 @@ def test_the_real_model_variants_change_only_what_they_name(tmp_path: Path) -> N
     assert filter_light(centres, every) == pytest.approx(effective)
     assert every.region.wavelength_nm == pytest.approx(model.region.wavelength_nm)
     row = matrix.with_spectral_model(real, every)
-    assert row.models["spectral"] is every and row.models["colour"] is real.models["colour"]
+    assert row.models.spectral is every and row.models.colour is real.models.colour
 
 
 def test_the_baseline_table_says_whether_the_defaults_beat_every_baseline() -> None:

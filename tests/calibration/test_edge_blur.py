@@ -75,7 +75,7 @@ def test_the_simulated_rig_is_as_sharp_as_the_real_frames(tmp_path) -> None:
     real frames' 550 nm HDR image (docs/notes/blur.md): measured 0.40 px
     real, 0.39 px simulated."""
     from calibration import load_filtered_hdr
-    from labkit.demo_real import prepare_real_inputs
+    from labkit.real_chart import prepare_real_inputs
 
     real = prepare_real_inputs(tmp_path)
     (images,) = load_filtered_hdr(tmp_path / "hdr").values()

@@ -234,7 +234,7 @@ def test_warp_correction_takes_a_from_reference_model(inputs, tmp_path: Path, ca
             "--correction", "warp", "--weights", "fixed:0.01", "--patch-px", "32",
             "--quiet", "--out", str(out)]  # fmt: skip
     assert main(args) == 0
-    assert "solved without Φ, then warped" in capsys.readouterr().out
+    assert "solved without the dispersion, then warped" in capsys.readouterr().out
     raw_colour = _read_rgb_exr(out / "raw_colour.exr")
     np.testing.assert_allclose(raw_colour, np.broadcast_to(GREY, (*SHAPE, 3)), rtol=1e-3)
     log = json.loads((out / "log.json").read_text())
