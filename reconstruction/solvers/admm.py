@@ -39,6 +39,7 @@ Without splits (L2 priors, no constraint) the problem is one quadratic solve.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -361,33 +362,11 @@ class ADMM:
 
 
 @fixed_blas_threads
-def solve_admm(
-    problem: Problem,
-    *,
-    x0: np.ndarray | None = None,
-    rtol: float | None = None,
-    atol: float | None = None,
-    max_iter: int = 1000,
-    cg_rtol: float = 1e-5,
-    cg_max_iter: int = 100,
-    penalty: float | None = None,
-    track_objective: bool = False,
-    settle: bool = True,
-) -> Solution:
+def solve_admm(problem: Problem, *, x0: np.ndarray | None = None, **options: Any) -> Solution:
     """Minimise `problem` by ADMM (or one quadratic solve when nothing needs splitting).
 
     The options are :class:`ADMM`'s; `x0` is the start (:meth:`ADMM.setup`).
     """
-    admm = ADMM(
-        problem,
-        rtol=rtol,
-        atol=atol,
-        max_iter=max_iter,
-        cg_rtol=cg_rtol,
-        cg_max_iter=cg_max_iter,
-        penalty=penalty,
-        track_objective=track_objective,
-        settle=settle,
-    )
+    admm = ADMM(problem, **options)
     admm.setup(x0)
     return admm.finalize(admm.run())

@@ -9,6 +9,8 @@ settle, or the problem is of another kind, ADMM's own result stands (no finish, 
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from labkit.blas_threads import fixed_blas_threads
@@ -41,43 +43,21 @@ itself (the ``exact`` method, the weight search) keep
 
 
 @fixed_blas_threads
-def solve_direct(
-    problem: Problem,
-    *,
-    x0: np.ndarray | None = None,
-    rtol: float | None = None,
-    atol: float | None = None,
-    max_iter: int = 1000,
-    cg_rtol: float = 1e-5,
-    cg_max_iter: int = 100,
-    penalty: float | None = None,
-    track_objective: bool = False,
-    settle: bool = True,
-) -> Solution:
+def solve_direct(problem: Problem, *, x0: np.ndarray | None = None, **options: Any) -> Solution:
     """The exact optimum without ADMM where it applies and is cheap, else ADMM.
 
     The options are :class:`~reconstruction.solvers.admm.ADMM`'s, for its solve where one
     is needed (``report.iterations`` = 0 where none was).
     """
-    admm = ADMM(
-        problem,
-        rtol=rtol,
-        atol=atol,
-        max_iter=max_iter,
-        cg_rtol=cg_rtol,
-        cg_max_iter=cg_max_iter,
-        penalty=penalty,
-        track_objective=track_objective,
-        settle=settle,
-    )
+    admm = ADMM(problem, **options)
     check_start(problem, x0)
     start = x0
     if exact_applies(problem):
         attempt = attempt_optimum(
             problem,
             x0,
-            cg_rtol=cg_rtol,
-            cg_max_iter=cg_max_iter,
+            cg_rtol=admm.cg_rtol,
+            cg_max_iter=admm.cg_max_iter,
             max_zeros=DIRECT_MAX_ZEROS,
             newton=True,
             newton_cg_rtol=DIRECT_CG_RTOL,

@@ -16,7 +16,7 @@ Problems with an L1 prior or without the constraint are solved by ADMM alone.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -99,35 +99,13 @@ def exact_solution(problem: Problem, attempt: ExactAttempt) -> Solution:
 
 
 @fixed_blas_threads
-def solve_exact(
-    problem: Problem,
-    *,
-    x0: np.ndarray | None = None,
-    rtol: float | None = None,
-    atol: float | None = None,
-    max_iter: int = 1000,
-    cg_rtol: float = 1e-5,
-    cg_max_iter: int = 100,
-    penalty: float | None = None,
-    track_objective: bool = False,
-    settle: bool = True,
-) -> Solution:
+def solve_exact(problem: Problem, *, x0: np.ndarray | None = None, **options: Any) -> Solution:
     """The exact optimum of a non-negative L2-type problem (ADMM for any other).
 
     The options are :class:`~reconstruction.solvers.admm.ADMM`'s, for its solve where the
     optimum needs one (``report.iterations`` = 0 where it did not).
     """
-    admm = ADMM(
-        problem,
-        rtol=rtol,
-        atol=atol,
-        max_iter=max_iter,
-        cg_rtol=cg_rtol,
-        cg_max_iter=cg_max_iter,
-        penalty=penalty,
-        track_objective=track_objective,
-        settle=settle,
-    )
+    admm = ADMM(problem, **options)
     check_start(problem, x0)
     if not exact_applies(problem):
         admm.setup(x0)
@@ -135,8 +113,8 @@ def solve_exact(
     attempt = attempt_optimum(
         problem,
         x0,
-        cg_rtol=cg_rtol,
-        cg_max_iter=cg_max_iter,
+        cg_rtol=admm.cg_rtol,
+        cg_max_iter=admm.cg_max_iter,
         max_zeros=None,
         newton=problem.smoothness > 0,
         newton_cg_rtol=EXACT_CG_RTOL,
