@@ -58,7 +58,7 @@ import numpy as np
 from scipy.linalg import lapack
 
 from labkit.blas_threads import fixed_blas_threads
-from labkit.errors import DataError
+from labkit.errors import ConfigError, DataError
 
 #: Default refusal threshold for the 2-norm condition number of a design matrix.
 MAX_CONDITION = 1e10
@@ -457,3 +457,12 @@ def table(values: np.ndarray) -> list:
     if values.ndim > 1:
         return [table(row) for row in values]
     return [float(v) if np.isfinite(v) else None for v in values]
+
+
+def check_count(name: str, value: object, *, least: int) -> int:
+    """`value` as an int of at least `least` (a bool is not a count); a ConfigError naming
+    `name` otherwise."""
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < least:
+        wanted = "a non-negative integer" if least == 0 else f"an integer ≥ {least}"
+        raise ConfigError(f"{name} must be {wanted}, got {value!r}")
+    return int(value)

@@ -142,22 +142,10 @@ def fit_polynomial_model(
     """
     if direction not in ("from_reference", "to_reference"):
         raise ConfigError(f"direction must be from_reference or to_reference, not {direction!r}")
-    if (
-        isinstance(max_degree_xy, bool)
-        or not isinstance(max_degree_xy, int | np.integer)
-        or max_degree_xy < 0
-    ):
-        raise ConfigError(f"max_degree_xy must be a non-negative integer, got {max_degree_xy!r}")
-    if max_degree_lambda is not None and (
-        isinstance(max_degree_lambda, bool)
-        or not isinstance(max_degree_lambda, int | np.integer)
-        or max_degree_lambda < 0
-    ):
-        raise ConfigError(
-            f"max_degree_lambda must be a non-negative integer, got {max_degree_lambda!r}"
-        )
-    if isinstance(folds, bool) or not isinstance(folds, int | np.integer) or folds < 2:
-        raise ConfigError(f"folds must be an integer ≥ 2, got {folds!r}")
+    pb.check_count("max_degree_xy", max_degree_xy, least=0)
+    if max_degree_lambda is not None:
+        pb.check_count("max_degree_lambda", max_degree_lambda, least=0)
+    pb.check_count("folds", folds, least=2)
     if validation not in VALIDATIONS:
         raise ConfigError(f"validation must be one of {', '.join(VALIDATIONS)}, not {validation!r}")
     rng = np.random.default_rng(0) if rng is None else rng
@@ -186,44 +174,14 @@ def fit_polynomial_model(
         region = CalibratedRegion.from_points(x, y, wavelength)
         variables = "xylambda"
     else:
-        fields, reports = {}, {}
-        channels = [c for c in keypoints.bands if c != keypoints.reference]
-        if not channels:
-            raise DataError(
-                f"the colour-channel keypoints hold only the reference channel "
-                f"{keypoints.reference!r}; nothing to model"
-            )
-        for c in channels:
-            rows = keypoints.channel == c
-            fit = _fit_channel(
-                xy[rows], d[rows], str(c),
-                max_degree=int(max_degree_xy),
-                folds=int(folds),
-                rng=rng,
-                max_condition=max_condition,
-                progress=progress,
-            )  # fmt: skip
-            fields[str(c)] = fit.field
-            reports[str(c)] = fit.report
-        keep = np.isin(keypoints.channel, channels)
-        selection = {
-            "method": "cv-1se",
-            "error_units": "px^2 (mean squared Euclidean prediction error)",
-            "folds": int(folds),
-            **{
-                key: {c: r[key] for c, r in reports.items()}
-                for key in (
-                    "degree_xy",
-                    "cv_error",
-                    "cv_std",
-                    "condition_number",
-                    "skipped",
-                    "n_keypoints",
-                )
-            },
-            "degree_lambda": None,
-            "n_keypoints_total": int(keep.sum()),
-        }
+        fields, selection, keep = _fit_channels(
+            keypoints, xy, d,
+            max_degree=int(max_degree_xy),
+            folds=int(folds),
+            rng=rng,
+            max_condition=max_condition,
+            progress=progress,
+        )  # fmt: skip
         region = CalibratedRegion.from_points(x[keep], y[keep])
         variables = "xy"
     selection["seconds"] = round(time.perf_counter() - started, 3)
@@ -241,21 +199,67 @@ def fit_polynomial_model(
     )
 
 
-def _fit_spectral(
+def _fit_channels(
+    keypoints: DispersionKeypoints,
     xy: np.ndarray,
-    wavelength: np.ndarray,
     d: np.ndarray,
     *,
-    max_degree_xy: int,
-    max_degree_lambda: int | None,
+    max_degree: int,
     folds: int,
     rng: np.random.Generator,
     max_condition: float,
-    validation: str,
     progress: Progress | None,
-) -> _Fit:
-    """Trivariate polynomial with degrees by thesis Algorithm 1 (validated on
-    `validation`'s bands)."""
+) -> tuple[dict[str, Any], dict[str, Any], np.ndarray]:
+    """One field per colour channel other than the reference: the fields, the selection
+    record (each channel's degree, CV tables, condition number) and which keypoints were
+    used."""
+    fields, reports = {}, {}
+    channels = [c for c in keypoints.bands if c != keypoints.reference]
+    if not channels:
+        raise DataError(
+            f"the colour-channel keypoints hold only the reference channel "
+            f"{keypoints.reference!r}; nothing to model"
+        )
+    for c in channels:
+        rows = keypoints.channel == c
+        fit = _fit_channel(
+            xy[rows], d[rows], str(c),
+            max_degree=max_degree,
+            folds=folds,
+            rng=rng,
+            max_condition=max_condition,
+            progress=progress,
+        )  # fmt: skip
+        fields[str(c)] = fit.field
+        reports[str(c)] = fit.report
+    keep = np.isin(keypoints.channel, channels)
+    selection = {
+        "method": "cv-1se",
+        "error_units": "px^2 (mean squared Euclidean prediction error)",
+        "folds": folds,
+        **{
+            key: {c: r[key] for c, r in reports.items()}
+            for key in (
+                "degree_xy",
+                "cv_error",
+                "cv_std",
+                "condition_number",
+                "skipped",
+                "n_keypoints",
+            )
+        },
+        "degree_lambda": None,
+        "n_keypoints_total": int(keep.sum()),
+    }
+    return fields, selection, keep
+
+
+def _checked_bands(
+    wavelength: np.ndarray, max_degree_lambda: int | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """The bands, each keypoint's band index, the keypoints per band and the largest degree
+    in λ (N_λ − 2 by default); an error for fewer than 3 bands, a band with too few
+    keypoints, or a degree in λ the bands cannot determine."""
     bands = np.unique(wavelength)
     n_bands = len(bands)
     if n_bands < 3:
@@ -282,16 +286,15 @@ def _fit_spectral(
             f"max_degree_lambda {max_degree_lambda} is too high for {n_bands} bands: "
             f"the degree in λ can be at most N_λ − 2 = {limit}"
         )
-    points = np.column_stack([xy, wavelength])
-    normaliser = Normaliser.fit(points, d, what="spectral keypoints")
-    u = normaliser.inputs(points)
-    domain = pb.Domain.fit(u)
-    t = domain(u)
-    target = normaliser.outputs(d)
-    exps = pb.exponent_table(max_degree_xy, max_degree_lambda)
-    X = pb.design_matrix(t, exps)
+    return bands, band_index, counts, max_degree_lambda
 
-    # Algorithm 1 splits: band i plus one tenth of the rest
+
+def _band_splits(
+    band_index: np.ndarray, n_bands: int, validation: str, folds: int, rng: np.random.Generator
+) -> tuple[list[np.ndarray], list[list[int]], range]:
+    """Thesis Algorithm 1's cross-validation: each validated band held out with one of
+    `folds` random parts of the rest. Returns the parts, the splits (pairs of part indices)
+    and the validated bands' indices."""
     parts: list[np.ndarray] = []
     splits: list[list[int]] = []
     validated = range(n_bands) if validation == "every-band" else range(1, n_bands - 1)
@@ -302,6 +305,36 @@ def _fit_spectral(
         for tenth in np.array_split(rng.permutation(rest), folds):
             parts.append(np.sort(tenth))
             splits.append([band_part, len(parts) - 1])
+    return parts, splits, validated
+
+
+def _fit_spectral(
+    xy: np.ndarray,
+    wavelength: np.ndarray,
+    d: np.ndarray,
+    *,
+    max_degree_xy: int,
+    max_degree_lambda: int | None,
+    folds: int,
+    rng: np.random.Generator,
+    max_condition: float,
+    validation: str,
+    progress: Progress | None,
+) -> _Fit:
+    """Trivariate polynomial with degrees by thesis Algorithm 1 (validated on
+    `validation`'s bands)."""
+    bands, band_index, counts, max_degree_lambda = _checked_bands(wavelength, max_degree_lambda)
+    n_bands = len(bands)
+    points = np.column_stack([xy, wavelength])
+    normaliser = Normaliser.fit(points, d, what="spectral keypoints")
+    u = normaliser.inputs(points)
+    domain = pb.Domain.fit(u)
+    t = domain(u)
+    target = normaliser.outputs(d)
+    exps = pb.exponent_table(max_degree_xy, max_degree_lambda)
+    X = pb.design_matrix(t, exps)
+
+    parts, splits, validated = _band_splits(band_index, n_bands, validation, folds, rng)
     groups = []
     for b in range(max_degree_lambda + 1):
         cols = pb.candidate_columns(exps, max_degree_xy, b)

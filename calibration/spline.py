@@ -397,19 +397,7 @@ def fit_spline_model(
         Invalid options.
     """
     del rng  # accepted for interface compatibility only
-    if direction not in ("from_reference", "to_reference"):
-        raise ConfigError(f"direction must be from_reference or to_reference, not {direction!r}")
-    if isinstance(max_points, bool) or not isinstance(max_points, int | np.integer):
-        raise ConfigError(f"max_points must be an integer, got {max_points!r}")
-    if max_points < 5:
-        raise ConfigError(f"max_points must be at least 5, got {max_points}")
-    if not tolerance > 0:
-        raise ConfigError(f"tolerance must be positive, got {tolerance}")
-    if max_iterations < 2 or min_iterations < 1:
-        raise ConfigError(
-            "GCV search needs max_iterations ≥ 2 and min_iterations ≥ 1, got "
-            f"{max_iterations} and {min_iterations}"
-        )
+    _check_options(direction, max_points, tolerance, min_iterations, max_iterations)
     if direction == "to_reference":
         x, y, dx, dy = keypoints.swapped()
     else:
@@ -422,66 +410,12 @@ def fit_spline_model(
     }
     selection: dict[str, Any] = {"method": "gcv"}
     started = time.perf_counter()
-    fields: dict[str, SplineField] = {}
     if keypoints.spectral:
-        bands = keypoints.bands
-        if len(bands) < 2:
-            raise DataError(
-                f"spectral keypoints come from {len(bands)} band"
-                f"{'s' if len(bands) != 1 else ''} ({', '.join(f'{b:g} nm' for b in bands)}); "
-                "a spline in (x, y, λ) needs keypoints from at least 2 filter bands"
-            )
-        wavelength = keypoints.wavelength_nm
-        points = np.column_stack([x, y, wavelength])
-        label = f"spectral keypoints ({len(points)} in {len(bands)} bands)"
-        centres, values, reduction = _reduce(points, displacements, wavelength, max_points)
-        fld, report = _fit_field(centres, values, label=label, **options)
-        fields[SPECTRAL] = fld
-        selection.update(
-            kernel=KERNELS[3],
-            n_keypoints=len(points),
-            n_centres=len(centres),
-            reduction=reduction,
-            **report,
-        )
-        region = CalibratedRegion.from_points(x, y, wavelength)
+        fields = _fit_spectral(keypoints, x, y, displacements, max_points, options, selection)
+        region = CalibratedRegion.from_points(x, y, keypoints.wavelength_nm)
         variables = "xylambda"
     else:
-        channels = [c for c in keypoints.bands if c != keypoints.reference]
-        if not channels:
-            raise DataError(
-                f"the keypoints only hold the reference channel {keypoints.reference!r}; "
-                "colour-channel keypoints need R or B"
-            )
-        keep = keypoints.channel != keypoints.reference
-        reports: dict[str, dict[str, Any]] = {}
-        for channel in channels:
-            pick = keypoints.channel == channel
-            points = np.column_stack([x[pick], y[pick]])
-            label = f"channel {channel} ({int(pick.sum())} keypoints)"
-            centres, values, reduction = _reduce(
-                points, displacements[pick], keypoints.channel[pick], max_points
-            )
-            fld, report = _fit_field(centres, values, label=label, **options)
-            fields[str(channel)] = fld
-            reports[str(channel)] = {
-                "n_keypoints": len(points),
-                "n_centres": len(centres),
-                "reduction": reduction,
-                **report,
-            }
-        # as calibration.polynomial: each per-field entry maps channel → value
-        keys = dict.fromkeys(key for r in reports.values() for key in r)
-        selection.update(
-            kernel=KERNELS[2],
-            **{key: {c: r[key] for c, r in reports.items() if key in r} for key in keys},
-            n_keypoints_total=sum(r["n_keypoints"] for r in reports.values()),
-            n_centres_total=sum(r["n_centres"] for r in reports.values()),
-        )
-        if not keep.all():
-            selection["ignored"] = (
-                f"{int((~keep).sum())} keypoints of the reference channel {keypoints.reference}"
-            )
+        fields, keep = _fit_channels(keypoints, x, y, displacements, max_points, options, selection)
         region = CalibratedRegion.from_points(x[keep], y[keep])
         variables = "xy"
     selection["seconds"] = round(time.perf_counter() - started, 3)
@@ -496,3 +430,103 @@ def fit_spline_model(
         selection=selection,
         provenance={**keypoints.meta, "keypoints": keypoints.source, "bands": keypoints.bands},
     )
+
+
+def _check_options(
+    direction: str, max_points: int, tolerance: float, min_iterations: int, max_iterations: int
+) -> None:
+    if direction not in ("from_reference", "to_reference"):
+        raise ConfigError(f"direction must be from_reference or to_reference, not {direction!r}")
+    if isinstance(max_points, bool) or not isinstance(max_points, int | np.integer):
+        raise ConfigError(f"max_points must be an integer, got {max_points!r}")
+    if max_points < 5:
+        raise ConfigError(f"max_points must be at least 5, got {max_points}")
+    if not tolerance > 0:
+        raise ConfigError(f"tolerance must be positive, got {tolerance}")
+    if max_iterations < 2 or min_iterations < 1:
+        raise ConfigError(
+            "GCV search needs max_iterations ≥ 2 and min_iterations ≥ 1, got "
+            f"{max_iterations} and {min_iterations}"
+        )
+
+
+def _fit_spectral(
+    keypoints: DispersionKeypoints,
+    x: np.ndarray,
+    y: np.ndarray,
+    displacements: np.ndarray,
+    max_points: int,
+    options: dict[str, Any],
+    selection: dict[str, Any],
+) -> dict[str, SplineField]:
+    """One spline in (x, y, λ); its selection record goes into `selection`."""
+    bands = keypoints.bands
+    if len(bands) < 2:
+        raise DataError(
+            f"spectral keypoints come from {len(bands)} band"
+            f"{'s' if len(bands) != 1 else ''} ({', '.join(f'{b:g} nm' for b in bands)}); "
+            "a spline in (x, y, λ) needs keypoints from at least 2 filter bands"
+        )
+    wavelength = keypoints.wavelength_nm
+    points = np.column_stack([x, y, wavelength])
+    label = f"spectral keypoints ({len(points)} in {len(bands)} bands)"
+    centres, values, reduction = _reduce(points, displacements, wavelength, max_points)
+    fld, report = _fit_field(centres, values, label=label, **options)
+    selection.update(
+        kernel=KERNELS[3],
+        n_keypoints=len(points),
+        n_centres=len(centres),
+        reduction=reduction,
+        **report,
+    )
+    return {SPECTRAL: fld}
+
+
+def _fit_channels(
+    keypoints: DispersionKeypoints,
+    x: np.ndarray,
+    y: np.ndarray,
+    displacements: np.ndarray,
+    max_points: int,
+    options: dict[str, Any],
+    selection: dict[str, Any],
+) -> tuple[dict[str, SplineField], np.ndarray]:
+    """One spline in (x, y) per channel other than the reference; the selection records
+    (channel → value, as :mod:`calibration.polynomial`) go into `selection`. Returns the
+    fields and which keypoints were used."""
+    channels = [c for c in keypoints.bands if c != keypoints.reference]
+    if not channels:
+        raise DataError(
+            f"the keypoints only hold the reference channel {keypoints.reference!r}; "
+            "colour-channel keypoints need R or B"
+        )
+    keep = keypoints.channel != keypoints.reference
+    fields: dict[str, SplineField] = {}
+    reports: dict[str, dict[str, Any]] = {}
+    for channel in channels:
+        pick = keypoints.channel == channel
+        points = np.column_stack([x[pick], y[pick]])
+        label = f"channel {channel} ({int(pick.sum())} keypoints)"
+        centres, values, reduction = _reduce(
+            points, displacements[pick], keypoints.channel[pick], max_points
+        )
+        fld, report = _fit_field(centres, values, label=label, **options)
+        fields[str(channel)] = fld
+        reports[str(channel)] = {
+            "n_keypoints": len(points),
+            "n_centres": len(centres),
+            "reduction": reduction,
+            **report,
+        }
+    keys = dict.fromkeys(key for r in reports.values() for key in r)
+    selection.update(
+        kernel=KERNELS[2],
+        **{key: {c: r[key] for c, r in reports.items() if key in r} for key in keys},
+        n_keypoints_total=sum(r["n_keypoints"] for r in reports.values()),
+        n_centres_total=sum(r["n_centres"] for r in reports.values()),
+    )
+    if not keep.all():
+        selection["ignored"] = (
+            f"{int((~keep).sum())} keypoints of the reference channel {keypoints.reference}"
+        )
+    return fields, keep

@@ -354,42 +354,11 @@ def fit_vignetting(
         a fitted surface that is not positive everywhere in the image.
     """
     raw = np.asarray(raw)
-    if raw.ndim != 2 or raw.dtype.kind not in "biuf":
-        raise DataError(
-            f"{name}: vignetting needs a 2-D raw mosaic of numbers, got {raw.shape} {raw.dtype}"
-        )
-    layout = check_layout(cfa)
-    if channel not in CHANNELS:
-        raise DataError(f"{name}: channel must be one of R, G, B, got {channel!r}")
-    if (
-        isinstance(max_degree, bool)
-        or not isinstance(max_degree, int | np.integer)
-        or max_degree < 0
-    ):
-        raise ConfigError(f"max_degree must be a non-negative integer, got {max_degree!r}")
-    if mask is None:
-        mask = np.ones(raw.shape, dtype=bool)
-    else:
-        mask = np.asarray(mask)
-        if mask.shape != raw.shape or mask.dtype != bool:
-            raise DataError(
-                f"{name}: the vignetting mask must be a boolean array of the image's shape; "
-                f"mask shape {mask.shape} ({mask.dtype}), image shape {raw.shape}"
-            )
+    layout = _check_inputs(raw, cfa, channel, max_degree, name)
+    mask = _checked_mask(mask, raw.shape, name)
     rng = np.random.default_rng(0) if rng is None else rng
     select = mask & (channel_index(layout, raw.shape) == CHANNELS.index(channel))
-    rows, cols = np.nonzero(select)
-    if rows.size < max(MIN_PIXELS, folds):
-        raise DataError(
-            f"{name}: only {rows.size} {channel} pixels inside the vignetting mask (mask shape "
-            f"{mask.shape}, image shape {raw.shape}); need at least {max(MIN_PIXELS, folds)}"
-        )
-    if rows.size > max_pixels:
-        pick = np.sort(rng.choice(rows.size, size=max_pixels, replace=False))
-        rows, cols = rows[pick], cols[pick]
-    intensity = raw[rows, cols].astype(np.float64)
-    if not np.all(np.isfinite(intensity)):
-        raise DataError(f"{name}: the image holds NaN or Inf inside the vignetting mask")
+    rows, cols, intensity = _samples(raw, select, rng, channel, folds, max_pixels, name)
     xy = np.column_stack([cols, rows]).astype(np.float64)
     offset, matrix = pb.whitening(xy, what=f"{name}: vignetting mask")
     u = (xy - offset) @ matrix.T
@@ -399,24 +368,13 @@ def fit_vignetting(
     if not i_scale > 0:
         i_scale = 1.0
     target = (intensity - i_offset) / i_scale
-    exps = pb.exponent_table(max_degree)
-    X = pb.design_matrix(domain(u), exps)
-    splits = pb.kfold_splits(len(X), folds, rng)
-    sizes = [pb.n_terms_xy(d) for d in range(max_degree + 1)]
-    cv = pb.cross_validate(
-        X, target, splits, [[j] for j in range(len(splits))], [(np.arange(len(exps)), sizes)],
-        max_condition=max_condition,
-    )  # fmt: skip
-    mean, std = cv.mean_std()
-    mean, std = mean[0], std[0]
-    if not np.any(np.isfinite(mean)):
-        raise DataError(f"{name}: no polynomial intensity model could be fitted")
-    degree = pb.one_standard_error_1d(mean, std)
+    X = pb.design_matrix(domain(u), pb.exponent_table(max_degree))
+    degree, cv, (mean, std) = _select_degree(X, target, max_degree, folds, rng, max_condition, name)
+    size = pb.n_terms_xy(degree)
     coef, cond = pb.solve_lstsq(
-        X[:, : sizes[degree]], target, max_condition=max_condition, what=f"{name}: vignetting model"
+        X[:, :size], target, max_condition=max_condition, what=f"{name}: vignetting model"
     )
-    fitted = X[:, : sizes[degree]] @ coef * i_scale + i_offset
-    mean_intensity = float(fitted.mean())
+    mean_intensity = float((X[:, :size] @ coef * i_scale + i_offset).mean())
     if not mean_intensity > 0:
         raise DataError(
             f"{name}: the vignetting model predicts a non-positive mean intensity "
@@ -447,13 +405,95 @@ def fit_vignetting(
         },
         name=name,
     )
+    _check_positive(model, name)
+    return model
+
+
+def _check_inputs(raw: np.ndarray, cfa: str, channel: str, max_degree: int, name: str) -> str:
+    """The checked Bayer layout; an error naming the image for a bad raw image, channel or
+    degree."""
+    if raw.ndim != 2 or raw.dtype.kind not in "biuf":
+        raise DataError(
+            f"{name}: vignetting needs a 2-D raw mosaic of numbers, got {raw.shape} {raw.dtype}"
+        )
+    layout = check_layout(cfa)
+    if channel not in CHANNELS:
+        raise DataError(f"{name}: channel must be one of R, G, B, got {channel!r}")
+    pb.check_count("max_degree", max_degree, least=0)
+    return layout
+
+
+def _checked_mask(mask: np.ndarray | None, shape: tuple[int, ...], name: str) -> np.ndarray:
+    """`mask` as a boolean array of the image's shape (every pixel when None)."""
+    if mask is None:
+        return np.ones(shape, dtype=bool)
+    mask = np.asarray(mask)
+    if mask.shape != shape or mask.dtype != bool:
+        raise DataError(
+            f"{name}: the vignetting mask must be a boolean array of the image's shape; "
+            f"mask shape {mask.shape} ({mask.dtype}), image shape {shape}"
+        )
+    return mask
+
+
+def _samples(
+    raw: np.ndarray,
+    select: np.ndarray,
+    rng: np.random.Generator,
+    channel: str,
+    folds: int,
+    max_pixels: int,
+    name: str,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rows, columns and intensities of the selected pixels (a random subsample of at most
+    `max_pixels`); an error when too few, or when any is not finite."""
+    rows, cols = np.nonzero(select)
+    if rows.size < max(MIN_PIXELS, folds):
+        raise DataError(
+            f"{name}: only {rows.size} {channel} pixels inside the vignetting mask (mask shape "
+            f"{select.shape}, image shape {raw.shape}); need at least {max(MIN_PIXELS, folds)}"
+        )
+    if rows.size > max_pixels:
+        pick = np.sort(rng.choice(rows.size, size=max_pixels, replace=False))
+        rows, cols = rows[pick], cols[pick]
+    intensity = raw[rows, cols].astype(np.float64)
+    if not np.all(np.isfinite(intensity)):
+        raise DataError(f"{name}: the image holds NaN or Inf inside the vignetting mask")
+    return rows, cols, intensity
+
+
+def _select_degree(
+    X: np.ndarray,
+    target: np.ndarray,
+    max_degree: int,
+    folds: int,
+    rng: np.random.Generator,
+    max_condition: float,
+    name: str,
+) -> tuple[int, pb.CVResult, tuple[np.ndarray, np.ndarray]]:
+    """The total degree by `folds`-fold cross-validation and the one-standard-error rule,
+    the cross-validation itself, and its mean and standard deviation per degree."""
+    splits = pb.kfold_splits(len(X), folds, rng)
+    sizes = [pb.n_terms_xy(d) for d in range(max_degree + 1)]
+    cv = pb.cross_validate(
+        X, target, splits, [[j] for j in range(len(splits))],
+        [(np.arange(X.shape[1]), sizes)], max_condition=max_condition,
+    )  # fmt: skip
+    mean, std = cv.mean_std()
+    mean, std = mean[0], std[0]
+    if not np.any(np.isfinite(mean)):
+        raise DataError(f"{name}: no polynomial intensity model could be fitted")
+    return pb.one_standard_error_1d(mean, std), cv, (mean, std)
+
+
+def _check_positive(model: VignettingModel, name: str) -> None:
+    """Refuse a model whose surface is not positive everywhere in the image."""
     image = model.image()
     low = float(image.min())
     if not low > 0:
         r, c = np.unravel_index(int(np.argmin(image)), image.shape)
         raise DataError(
-            f"{name}: the vignetting model (degree {degree}) predicts non-positive intensity "
-            f"({low * mean_intensity:.4g}) at row {r}, column {c}; the mask probably leaves "
-            "too much of the image uncovered for the polynomial to extrapolate"
+            f"{name}: the vignetting model (degree {model.degree}) predicts non-positive "
+            f"intensity ({low * model.mean_intensity:.4g}) at row {r}, column {c}; the mask "
+            "probably leaves too much of the image uncovered for the polynomial to extrapolate"
         )
-    return model

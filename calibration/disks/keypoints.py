@@ -12,7 +12,7 @@ import numpy as np
 
 from calibration._hdr_inputs import source_of
 from calibration.disks.detect import _EDGE_WIDTH_PX, _checked_raw, detect_disks
-from calibration.disks.fit import _finish, _maybe_pool, _Pending, _start, _workers
+from calibration.disks.fit import DiskFit, _finish, _maybe_pool, _Pending, _start, _workers
 from calibration.disks.pair import _displacement_outliers, _median_spacing, pair_mutual_nearest
 from calibration.keypoints import DispersionKeypoints
 from labkit.blas_threads import fixed_blas_threads
@@ -110,21 +110,9 @@ def disk_keypoints(
     order = np.argsort(bands, kind="stable")
     images = [images[i] for i in order]
     bands = [bands[i] for i in order]
-    for a, b, image in zip(bands[:-1], bands[1:], images[1:], strict=True):
-        if abs(a - b) < _WAVELENGTH_TOLERANCE_NM:
-            raise DataError(
-                f"two images are of band {b:g} nm (one is {source_of(image)}); "
-                "give one image per filter band"
-            )
-    near = [i for i, w in enumerate(bands) if abs(w - reference_nm) <= _WAVELENGTH_TOLERANCE_NM]
-    if not near:
-        raise DataError(
-            f"no image is of the reference band {reference_nm:g} nm; the bands are "
-            f"{', '.join(f'{w:g}' for w in bands)} nm; choose one of them as the reference"
-        )
+    ref_i = _reference_band(images, bands, reference_nm)
     if max_shift_px is not None and not max_shift_px > 0:
         raise DataError(f"max_shift_px must be > 0 px, got {max_shift_px}")
-    ref_i = near[0]
     shape = images[0].raw.shape
     with _maybe_pool(n_workers) as pool:
         # detection of the next image overlaps the fits of the previous ones
@@ -150,21 +138,14 @@ def disk_keypoints(
             zeros = np.zeros(len(fit))
             parts.append((ref_xy, zeros, zeros, np.full(len(fit), w), fit.residual))
             continue
-        ri, bi = pair_mutual_nearest(ref_xy, fit.centres, max_distance_px=limit)
-        d = fit.centres[bi] - ref_xy[ri]
-        outliers = _displacement_outliers(ref_xy[ri], d)
-        keep = ~outliers
-        info.update(paired=int(ri.size), outliers=int(outliers.sum()))
-        if int(keep.sum()) < _MIN_PAIRED:
-            raise DataError(
-                f"band {w:g} nm ({source_of(image)}): only {int(keep.sum())} of its "
-                f"{len(fit)} disks pair with the {len(ref_fit)} disks of the reference "
-                f"band {bands[ref_i]:g} nm within {limit:.3g} px (need ≥ {_MIN_PAIRED}); "
-                "check that both images show the same view of the pattern, or raise "
-                "max_shift_px"
-            )
-        ri, bi, d = ri[keep], bi[keep], d[keep]
-        quality = np.maximum(ref_fit.residual[ri], fit.residual[bi])
+        ri, d, quality = _paired(
+            ref_fit,
+            fit,
+            limit,
+            info,
+            f"band {w:g} nm ({source_of(image)})",
+            f"band {bands[ref_i]:g} nm",
+        )
         parts.append((ref_xy[ri], d[:, 0], d[:, 1], np.full(ri.size, w), quality))
     xy = np.concatenate([p[0] for p in parts])
     return DispersionKeypoints(
@@ -185,6 +166,46 @@ def disk_keypoints(
             "bands": meta_bands,
         },
     )
+
+
+def _reference_band(images: list[RawImage], bands: list[float], reference_nm: float) -> int:
+    """Index of the reference band among `bands` (sorted); an error for two images of one
+    band or none of the reference band."""
+    for a, b, image in zip(bands[:-1], bands[1:], images[1:], strict=True):
+        if abs(a - b) < _WAVELENGTH_TOLERANCE_NM:
+            raise DataError(
+                f"two images are of band {b:g} nm (one is {source_of(image)}); "
+                "give one image per filter band"
+            )
+    near = [i for i, w in enumerate(bands) if abs(w - reference_nm) <= _WAVELENGTH_TOLERANCE_NM]
+    if not near:
+        raise DataError(
+            f"no image is of the reference band {reference_nm:g} nm; the bands are "
+            f"{', '.join(f'{w:g}' for w in bands)} nm; choose one of them as the reference"
+        )
+    return near[0]
+
+
+def _paired(
+    ref_fit: DiskFit, fit: DiskFit, limit: float, info: dict[str, Any], name: str, reference: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The reference disks paired with `fit`'s within `limit` px, outliers left out: their
+    indices, displacements (band − reference) and qualities; `info` records the counts."""
+    ref_xy = ref_fit.centres
+    ri, bi = pair_mutual_nearest(ref_xy, fit.centres, max_distance_px=limit)
+    d = fit.centres[bi] - ref_xy[ri]
+    outliers = _displacement_outliers(ref_xy[ri], d)
+    keep = ~outliers
+    info.update(paired=int(ri.size), outliers=int(outliers.sum()))
+    if int(keep.sum()) < _MIN_PAIRED:
+        raise DataError(
+            f"{name}: only {int(keep.sum())} of its {len(fit)} disks pair with the "
+            f"{len(ref_fit)} disks of the reference {reference} within {limit:.3g} px "
+            f"(need ≥ {_MIN_PAIRED}); check that both images show the same view of the "
+            "pattern, or raise max_shift_px"
+        )
+    ri, bi, d = ri[keep], bi[keep], d[keep]
+    return ri, d, np.maximum(ref_fit.residual[ri], fit.residual[bi])
 
 
 @fixed_blas_threads

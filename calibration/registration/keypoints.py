@@ -5,6 +5,7 @@ and between the colour channels of one image.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -76,21 +77,7 @@ def registration_keypoints(
         raise DataError("registration_keypoints needs the filtered images of one scene")
     check_consistent(images, what="registration")
     bands = [_band_wavelength(image, wavelengths) for image in images]
-    for i, band in enumerate(bands):
-        for j in range(i):
-            if abs(bands[j] - band) < 0.5:
-                raise DataError(
-                    f"{source_of(images[j])} and {source_of(images[i])} are both the "
-                    f"{band:g} nm band; pass one image per band"
-                )
-    distance = np.abs(np.asarray(bands) - float(reference_nm))
-    ref_index = int(np.argmin(distance))
-    if distance[ref_index] > 0.5:
-        listed = ", ".join(f"{b:g}" for b in sorted(bands))
-        raise DataError(
-            f"no image of the reference band {reference_nm:g} nm among the bands {listed} nm; "
-            "pass reference_nm= one of them"
-        )
+    ref_index = _reference_index(images, bands, reference_nm)
     options = {
         "patch_px": patch_px,
         "step_px": step_px,
@@ -118,28 +105,10 @@ def registration_keypoints(
         )
         meta_bands[str(band)] = _summary(shifts, source_of(image), max_error, min_texture)
         parts.append(_keypoints(shifts, reference_wl, reference_green.shape, band=band))
-    r0, c0 = _patch_grid(reference_green.shape, patch_px, step_px)
-    half = (patch_px - 1) / 2.0
-    n_ref = r0.size
-    meta_bands[str(reference_wl)] = {
-        "file": source_of(ref_image),
-        "patches": n_ref,
-        "accepted": n_ref,
-        "reference": True,
-    }
-    parts.append(
-        DispersionKeypoints(
-            c0 + half,
-            r0 + half,
-            np.zeros(n_ref),
-            np.zeros(n_ref),
-            reference=reference_wl,
-            image_shape=reference_green.shape,
-            wavelength_nm=np.full(n_ref, reference_wl),
-            source="registration",
-            quality=np.zeros(n_ref),
-        )
+    reference, meta_bands[str(reference_wl)] = _reference_keypoints(
+        reference_green.shape, reference_wl, source_of(ref_image), patch_px, step_px
     )
+    parts.append(reference)
     joined = DispersionKeypoints.concatenate(parts)
     order = np.argsort(joined.wavelength_nm, kind="stable")
     return _with_meta(
@@ -151,6 +120,48 @@ def registration_keypoints(
             "options": options,
         },
     )
+
+
+def _reference_index(images: Sequence[RawImage], bands: list[float], reference_nm: float) -> int:
+    """Which image is the reference band's; an error for two images of one band or none of
+    the reference band."""
+    for i, band in enumerate(bands):
+        for j in range(i):
+            if abs(bands[j] - band) < 0.5:
+                raise DataError(
+                    f"{source_of(images[j])} and {source_of(images[i])} are both the "
+                    f"{band:g} nm band; pass one image per band"
+                )
+    distance = np.abs(np.asarray(bands) - float(reference_nm))
+    ref_index = int(np.argmin(distance))
+    if distance[ref_index] > 0.5:
+        listed = ", ".join(f"{b:g}" for b in sorted(bands))
+        raise DataError(
+            f"no image of the reference band {reference_nm:g} nm among the bands {listed} nm; "
+            "pass reference_nm= one of them"
+        )
+    return ref_index
+
+
+def _reference_keypoints(
+    shape: tuple[int, int], reference_wl: float, source: str, patch_px: int, step_px: int
+) -> tuple[DispersionKeypoints, dict[str, Any]]:
+    """The reference band's own patch centres (zero displacement) and its summary."""
+    r0, c0 = _patch_grid(shape, patch_px, step_px)
+    half = (patch_px - 1) / 2.0
+    n_ref = r0.size
+    keypoints = DispersionKeypoints(
+        c0 + half,
+        r0 + half,
+        np.zeros(n_ref),
+        np.zeros(n_ref),
+        reference=reference_wl,
+        image_shape=shape,
+        wavelength_nm=np.full(n_ref, reference_wl),
+        source="registration",
+        quality=np.zeros(n_ref),
+    )
+    return keypoints, {"file": source, "patches": n_ref, "accepted": n_ref, "reference": True}
 
 
 @fixed_blas_threads

@@ -283,63 +283,11 @@ def import_session(
         the session is built in a staging folder and put in place when complete, so an
         import that fails (a full disk, Ctrl-C) leaves no half-built session behind.
     """
-    sources = [Path(source)] if isinstance(source, str | Path) else [Path(s) for s in source]
-    if not sources:
-        raise DataError("give at least one folder of frames to import")
-    seen: dict[Path, Path] = {}
-    for folder_in in sources:
-        if not folder_in.is_dir():
-            raise DataError(f"import source {folder_in} is not a folder")
-        first = seen.get(folder_in.resolve())
-        if first is not None:
-            same = f"--from {folder_in} is given twice"
-            if first != folder_in:
-                same = f"--from {first} and --from {folder_in} are the same folder"
-            raise DataError(f"{same}; give each folder once")
-        seen[folder_in.resolve()] = folder_in
+    sources = _checked_sources(source)
     matched, unmatched = match_files(sources, patterns, rig, mapping)
     if not matched:
-        example = unmatched[0].name if unmatched else "(no .tif or camera raw files)"
-        where = ", ".join(str(s) for s in sources)
-        unitless = _unitless_exposure(unmatched, patterns)
-        if unitless:
-            name, value = unitless
-            raise DataError(
-                f"no file in {where} matches {list(patterns)}: in {name}, {{exposure}} "
-                f"{value!r} has no unit; name the files with one (e.g. {value}ms), as "
-                "{exposure} needs us, ms or s"
-            )
-        raise DataError(
-            f"no file in {where} matches {list(patterns)} (e.g. {example}); check --pattern"
-        )
-    images = {}
-    facts: dict[Path, SampleFacts] = {}
-    raw_formats: dict[Path, SampleFormat] = {}
-    source_facts: dict[Path, dict[str, Any]] = {}  # what each frame's record says of its file
-    for item in matched:  # read all first: a bad file must not leave a half-built session
-        if item.path.suffix.lower() in CAMERA_RAW_SUFFIXES:
-            found = read_camera_raw_counts(item.path)
-            _check_camera_raw(item, found, rig)
-            images[item.path], raw_formats[item.path], source_facts[item.path] = _raw_levels(
-                found, item.path
-            )
-            continue
-        try:
-            image = tifffile.imread(item.path)
-        except Exception as error:  # tifffile raises many types on bad files
-            raise DataError(f"{item.path} is not a readable TIFF ({error})") from None
-        images[item.path], facts[item.path] = stored_samples(image, name=str(item.path))
-        source_facts[item.path] = {"source_dtype": facts[item.path].container}
-    shapes: dict[tuple[int, ...], list[Path]] = {}
-    for path, image in images.items():
-        shapes.setdefault(image.shape, []).append(path)
-    if len(shapes) > 1:
-        common = max(shapes, key=lambda shape: len(shapes[shape]))
-        odd = next(paths[0] for shape, paths in shapes.items() if shape != common)
-        raise DataError(
-            f"{odd} is {_size(images[odd].shape)} but most frames are {_size(common)}; the "
-            "frames of one session come from one sensor: move the odd files out of --from"
-        )
+        _refuse_no_match(sources, patterns, unmatched)
+    images, facts, raw_formats, source_facts = _read_all(matched, rig)
     formats: dict[Path, SampleFormat] = dict(raw_formats)
     if facts:
         formats |= decide_formats(
@@ -365,6 +313,84 @@ def import_session(
         _store_all(session, matched, images, source_facts, formats, rig, progress)
         session.set_status("imported")
     return Session.open(folder), unmatched
+
+
+def _checked_sources(source: str | Path | Sequence[str | Path]) -> list[Path]:
+    """The source folders; an error for none, one that is not a folder, or one given twice."""
+    sources = [Path(source)] if isinstance(source, str | Path) else [Path(s) for s in source]
+    if not sources:
+        raise DataError("give at least one folder of frames to import")
+    seen: dict[Path, Path] = {}
+    for folder_in in sources:
+        if not folder_in.is_dir():
+            raise DataError(f"import source {folder_in} is not a folder")
+        first = seen.get(folder_in.resolve())
+        if first is not None:
+            same = f"--from {folder_in} is given twice"
+            if first != folder_in:
+                same = f"--from {first} and --from {folder_in} are the same folder"
+            raise DataError(f"{same}; give each folder once")
+        seen[folder_in.resolve()] = folder_in
+    return sources
+
+
+def _refuse_no_match(sources: list[Path], patterns: Sequence[str], unmatched: list[Path]) -> None:
+    """The error for sources none of whose files match the patterns, with the likely cause."""
+    example = unmatched[0].name if unmatched else "(no .tif or camera raw files)"
+    where = ", ".join(str(s) for s in sources)
+    unitless = _unitless_exposure(unmatched, patterns)
+    if unitless:
+        name, value = unitless
+        raise DataError(
+            f"no file in {where} matches {list(patterns)}: in {name}, {{exposure}} "
+            f"{value!r} has no unit; name the files with one (e.g. {value}ms), as "
+            "{exposure} needs us, ms or s"
+        )
+    raise DataError(
+        f"no file in {where} matches {list(patterns)} (e.g. {example}); check --pattern"
+    )
+
+
+def _read_all(
+    matched: list[ImportedFile], rig: Rig
+) -> tuple[
+    dict[Path, np.ndarray],
+    dict[Path, SampleFacts],
+    dict[Path, SampleFormat],
+    dict[Path, dict[str, Any]],
+]:
+    """Every matched file read before anything is written (a bad file must not leave a
+    half-built session): the images, the TIFFs' sample facts, the camera raw files' levels
+    and what each frame's record says of its file; an error for frames of different sizes."""
+    images = {}
+    facts: dict[Path, SampleFacts] = {}
+    raw_formats: dict[Path, SampleFormat] = {}
+    source_facts: dict[Path, dict[str, Any]] = {}
+    for item in matched:
+        if item.path.suffix.lower() in CAMERA_RAW_SUFFIXES:
+            found = read_camera_raw_counts(item.path)
+            _check_camera_raw(item, found, rig)
+            images[item.path], raw_formats[item.path], source_facts[item.path] = _raw_levels(
+                found, item.path
+            )
+            continue
+        try:
+            image = tifffile.imread(item.path)
+        except Exception as error:  # tifffile raises many types on bad files
+            raise DataError(f"{item.path} is not a readable TIFF ({error})") from None
+        images[item.path], facts[item.path] = stored_samples(image, name=str(item.path))
+        source_facts[item.path] = {"source_dtype": facts[item.path].container}
+    shapes: dict[tuple[int, ...], list[Path]] = {}
+    for path, image in images.items():
+        shapes.setdefault(image.shape, []).append(path)
+    if len(shapes) > 1:
+        common = max(shapes, key=lambda shape: len(shapes[shape]))
+        odd = next(paths[0] for shape, paths in shapes.items() if shape != common)
+        raise DataError(
+            f"{odd} is {_size(images[odd].shape)} but most frames are {_size(common)}; the "
+            "frames of one session come from one sensor: move the odd files out of --from"
+        )
+    return images, facts, raw_formats, source_facts
 
 
 def _store_all(
