@@ -268,9 +268,7 @@ class VignettingModel:
             raise ConfigError(f"{source}: channel must be one of R, G, B, got {data['channel']!r}")
         if data["basis"] != "legendre":
             raise ConfigError(f"{source}: basis is {data['basis']!r}; this labkit reads 'legendre'")
-        degree = data["degree"]
-        if isinstance(degree, bool) or not isinstance(degree, int) or degree < 0:
-            raise ConfigError(f"{source}: degree must be a non-negative integer, got {degree!r}")
+        degree = pb.check_count(f"{source}: degree", data["degree"], least=0)
         for key in ("xy", "domain", "intensity"):
             if not isinstance(data[key], Mapping):
                 raise ConfigError(f"{source}: {key} must be a mapping")

@@ -30,7 +30,7 @@ from __future__ import annotations
 import json
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -47,9 +47,6 @@ from labkit.plots import plot_patch_spectra
 from labkit.real_chart import REFERENCE_BAND, RealInputs, prepare_real_inputs
 from labkit.report import Report
 from labkit.spectra.datasets import COLORCHECKER_PATCHES
-
-if TYPE_CHECKING:
-    pass
 
 VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     "defaults": ("defaults", {}),

@@ -424,13 +424,6 @@ def merge_exposures(
         stats = accumulate(
             exposure, shape=shape, with_variance=blending_class.needs_variance, on_frame=on_frame
         )
-        if not counts:
-            shape = stats.mean.shape
-            factors = FactorChain(
-                channel_index(layout, shape), levels, low=low, high=high, min_pairs=min_pairs
-            )
-            blending = blending_class(shape, levels, low=low, weight_unit=weight_unit, erode=erode)
-            weighted = WeightedSum(shape)
         sample = exposure_sample(
             stats,
             get_dark(exposure.exposure_s),
@@ -440,9 +433,15 @@ def merge_exposures(
             fit_margin=fit_margin,
         )
         del stats
-        chain = factors.add(sample)
-        if not counts:
+        if shape is None:  # the longest exposure: the first read
+            shape = sample.signal.shape
+            factors = FactorChain(
+                channel_index(layout, shape), levels, low=low, high=high, min_pairs=min_pairs
+            )
+            blending = blending_class(shape, levels, low=low, weight_unit=weight_unit, erode=erode)
+            weighted = WeightedSum(shape)
             longest_signal = sample.signal.copy()  # the best estimate of pixels that stay dark
+        chain = factors.add(sample)
         counts.append((exposure.exposure_s, sample.replicates, sample.dark.count))
         scaled = sample.signal * np.float32(chain)
         weighted.add(blending.weight(sample, chain, scaled), scaled)
@@ -459,7 +458,9 @@ def merge_exposures(
         no_weight = weighted.weight_sum <= 0
         variance *= to_output * to_output
         variance[no_weight] = np.maximum(merged[no_weight] ** 2, np.float32(1e-12))
-    _report_unweighted(saturated, unlit, reference, order[0].exposure_s, factors)
+    _report_unweighted(
+        saturated, unlit, reference, order[0].exposure_s, factors.warnings, factors.notes
+    )
     _check_finite(merged, "raw")
     if variance is not None:
         _check_finite(variance, "variance")
@@ -480,17 +481,22 @@ def merge_exposures(
 
 
 def _report_unweighted(
-    saturated: int, unlit: int, shortest_s: float, longest_s: float, factors: FactorChain
+    saturated: int,
+    unlit: int,
+    shortest_s: float,
+    longest_s: float,
+    warnings: list[str],
+    notes: list[str],
 ) -> None:
     """Say which pixels no exposure weighed: saturated ones (a warning: lower bounds) and
     unlit ones (a note)."""
     if saturated:
-        factors.warnings.append(
+        warnings.append(
             f"{saturated} pixels are saturated (or next to saturation) even at the shortest "
             f"exposure {shortest_s:g} s; their values are lower bounds"
         )
     if unlit:
-        factors.notes.append(
+        notes.append(
             f"{unlit} pixel(s) show no signal above the dark level at any exposure (up to "
             f"{longest_s:g} s); their values are the longest exposure's"
         )

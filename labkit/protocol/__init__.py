@@ -1,6 +1,7 @@
 """The capture protocol (thesis Algorithm 10): plan, auto-bracketing, stage, the protocol's
 steps (:mod:`~labkit.protocol.steps`) and the engine that carries them out."""
 
+from labkit.protocol._generators import drive
 from labkit.protocol.bracketing import (
     BracketChoice,
     auto_bracketing,
@@ -30,7 +31,7 @@ from labkit.protocol.plan import (
     validate_plan,
 )
 from labkit.protocol.stage import OperatorStage, SimStage, Stage
-from labkit.protocol.steps import check_frame, configure_camera, drive, protocol_steps
+from labkit.protocol.steps import check_frame, configure_camera, protocol_steps
 
 __all__ = [
     "DARK",

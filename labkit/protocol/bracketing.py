@@ -28,9 +28,8 @@ since around pixels overexposed many times over the rates' prediction fails (des
 
 from __future__ import annotations
 
-from collections.abc import Generator, Sequence
+from collections.abc import Callable, Generator, Sequence
 from dataclasses import asdict, dataclass, field
-from typing import Any
 
 import numpy as np
 from scipy import ndimage
@@ -41,6 +40,7 @@ from labkit.errors import DataError
 from labkit.frame import Frame
 from labkit.hdr.merge import FIT_MARGIN_PX
 from labkit.hdr.scaling import MIN_PAIRS
+from labkit.protocol._generators import drive
 from labkit.rig import AutoExposureConfig
 
 #: Metering goes up or down the exposure range by this factor per frame.
@@ -528,7 +528,7 @@ def run_auto_bracketing(
     camera: Camera, *, bounds: Bounds, auto: AutoExposureConfig, start_s: float | None = None
 ) -> BracketChoice:
     """:func:`auto_bracketing` driven with frames grabbed from `camera`."""
-    return _drive(auto_bracketing(bounds, auto, start_s=start_s), camera)
+    return drive(auto_bracketing(bounds, auto, start_s=start_s), _grabber(camera))
 
 
 def meter(
@@ -541,20 +541,15 @@ def meter(
     start_s: float | None = None,
 ) -> list[Frame]:
     """Metering frames grabbed from `camera` (the sequence of :func:`metering`)."""
-    return _drive(
-        metering(bounds, maximum_s=maximum_s, low=low, high=high, start_s=start_s), camera
+    return drive(
+        metering(bounds, maximum_s=maximum_s, low=low, high=high, start_s=start_s),
+        _grabber(camera),
     )
 
 
-def _drive(steps: Generator[float, Frame, Any], camera: Camera) -> Any:
-    """Run a generator of exposures with one frame grabbed from `camera` at each; return
-    what it returns."""
-    exposure = next(steps)
-    try:
-        while True:
-            exposure = steps.send(camera.grab(exposure, 1)[0])
-    except StopIteration as done:
-        return done.value
+def _grabber(camera: Camera) -> Callable[[float], Frame]:
+    """One frame grabbed from `camera` at each exposure, s, asked for."""
+    return lambda exposure_s: camera.grab(exposure_s, 1)[0]
 
 
 def choose_bracket(

@@ -20,6 +20,7 @@ from labkit.devices.slider import FilterSlider
 from labkit.errors import LabkitError
 from labkit.frame import Frame
 from labkit.io.plain import now_iso
+from labkit.protocol._generators import drive
 from labkit.protocol.bracketing import BracketChoice
 from labkit.protocol.plan import Meter, Plan, build_plan, validate_plan
 from labkit.protocol.stage import Stage
@@ -33,7 +34,6 @@ from labkit.protocol.steps import (
     StartCapture,
     StartMeter,
     configure_camera,
-    drive,
     protocol_steps,
 )
 from labkit.rig import Rig

@@ -21,7 +21,8 @@ The requests, in the order a plan makes them:
     A step's frames grabbed, each checked (:func:`check_frame`) before it is recorded.
 
 An :class:`Acquire` is answered with the :class:`~labkit.frame.Frame` captured; every
-other request with nothing.
+other request with nothing; :func:`labkit.protocol.drive` carries them out with a
+function that does so.
 """
 
 from __future__ import annotations
@@ -32,11 +33,10 @@ from typing import Any
 
 from labkit.devices.camera import Bounds, Camera
 from labkit.errors import DeviceError
-from labkit.frame import Frame
+from labkit.frame import Frame, FrameKey
 from labkit.protocol.bracketing import BracketChoice, auto_bracketing
 from labkit.protocol.plan import (
     Capture,
-    FrameKey,
     Meter,
     Plan,
     build_plan,
@@ -185,19 +185,6 @@ def _meter(
             frame = yield Acquire(exposure, key, metering=True)
             assert frame is not None, "an Acquire request is answered with a frame"
             exposure = sequence.send(frame)
-    except StopIteration as finished:
-        return finished.value
-
-
-def drive(
-    steps: Generator[Request, Frame | None, Any], handle: Callable[[Request], Frame | None]
-) -> Any:
-    """Carry out every request of `steps` with `handle` (which answers an
-    :class:`Acquire` with its frame); returns what `steps` returns."""
-    answer: Frame | None = None
-    try:
-        while True:
-            answer = handle(steps.send(answer))
     except StopIteration as finished:
         return finished.value
 

@@ -37,7 +37,8 @@ def simulated_plans(
     """
     if rig.camera.backend != "sim" or rig.sim is None:
         raise ConfigError(
-            f"{rig.source}: the simulated plans need a simulated rig (camera.backend: sim)"
+            f"{rig.source or rig.name}: the simulated plans need a simulated rig "
+            "(camera.backend: sim)"
         )
     pitch = 32 if min(shape) < 512 else 64
     added = {"disks": {"type": "disks", "radius_px": pitch // 4, "pitch_px": pitch}}

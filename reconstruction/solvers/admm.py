@@ -234,7 +234,7 @@ class ADMM:
         self.x = x
         self.splits = splits
         self.report.splits = [s.name for s in splits]
-        self.quadratic = QuadraticStep(problem, list(splits), self.cg_rtol, self.cg_max_iter)
+        self.quadratic = QuadraticStep(problem, splits, self.cg_rtol, self.cg_max_iter)
         self.data_rhs = 2.0 * problem.formation.adjoint(problem.raw)
         self.iteration = 0
         self._sqrt_m = np.sqrt(x.size)

@@ -9,7 +9,7 @@ solved by conjugate gradients, preconditioned by the FFT solver of Φ's mean tra
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Protocol
 
 import numpy as np
@@ -52,7 +52,7 @@ class QuadraticStep:
     def __init__(
         self,
         problem: Problem,
-        splits: list[Penalised],
+        splits: Sequence[Penalised],
         cg_rtol: float,
         cg_max_iter: int,
     ) -> None:
