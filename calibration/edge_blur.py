@@ -99,7 +99,8 @@ def edge_blur(
         Bayer layout of `raw` (RGGB, GRBG, GBRG, BGGR).
     labels : ndarray of int (rows, cols)
         Patch index per pixel, 0 outside the patches (a ColorChecker label image; for
-        rectangles, :func:`reconstruction.residual_aberration.labels_from_boxes`). Edges are
+        rectangles,
+        :func:`reconstruction.evaluate.residual_aberration.labels_from_boxes`). Edges are
         taken from each patch's first and last pixel in a row and, through the transpose,
         in a column; a marked edge may be up to 2 px off the true one.
     saturation : float, optional

@@ -228,7 +228,7 @@ def _spacing(points: np.ndarray) -> float | None:
 
 
 #: Below this, a difference in displacement does not matter, px (the reconstruction drops
-#: Φ of patches that shift less, :class:`reconstruction.patches.PatchOptions`).
+#: Φ of patches that shift less, :class:`reconstruction.solve.patches.PatchOptions`).
 NEGLIGIBLE_PX = 0.05
 
 

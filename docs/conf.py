@@ -70,7 +70,7 @@ smartquotes = False
 # Autosummary's own recursive stubs cannot do this: it would document each re-exported
 # name on every page that exports it, and it cannot reach a module hidden behind a
 # package attribute of the same name (calibration.warp, the function, hides the module
-# calibration.warp; likewise reconstruction.prior_terms and residual_aberration).
+# calibration.warp; likewise reconstruction.model.prior_terms and residual_aberration).
 # tests/test_docs.py checks that every name in every public module's __all__ is in the
 # built inventory and linked from its module's page.
 autosummary_generate = False  # the summary tables link to the pages above; no stubs

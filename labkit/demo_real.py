@@ -335,7 +335,7 @@ def _report_reconstruction(report, results, recons) -> None:
 
 def _report_evaluation(report, results, evaluation) -> None:
     """Patch-centre and per-pixel spectra, residual chromatic aberration, the images."""
-    from reconstruction.residual_aberration import STRIP_PX
+    from reconstruction.evaluate.residual_aberration import STRIP_PX
 
     report.heading("Evaluation")
     report.heading("Patch-centre spectra against the ASD reflectances", 3)

@@ -7,7 +7,7 @@ reconstruction of them: the inputs of ``labkit demo --real`` and of the real row
 sensor map, synthesises the multispectral and raw images from the filtered images (the lab
 has no raw image of the chart whose truth is known) and calibrates the dispersion from the
 same images. The :class:`RealInputs` it returns give the options of a reconstruction and a
-:class:`~reconstruction.chart_scores.ChartScorer` of it.
+:class:`~reconstruction.evaluate.chart_scores.ChartScorer` of it.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ if TYPE_CHECKING:
     from calibration.multispectral import Synthesis
     from calibration.sensitivity import ChannelSensitivity
     from labkit.spectra import Spectra
-    from reconstruction.chart_scores import ChartScorer
+    from reconstruction.evaluate.chart_scores import ChartScorer
 
 REFERENCE_BAND = "600"
 """Filter whose geometry the spectral dispersion model maps every band onto."""
@@ -150,7 +150,7 @@ class RealInputs:
         ASD spectrometer's reflectances of its patches, and :attr:`reference_truth` (made
         when a per-pixel error first needs it)."""
         from labkit.spectra import colorchecker_reflectances
-        from reconstruction.chart_scores import ChartScorer
+        from reconstruction.evaluate.chart_scores import ChartScorer
 
         raw = self.synthesis.raw
         return ChartScorer(

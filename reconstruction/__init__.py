@@ -1,8 +1,18 @@
 """Reconstruction: spectral images from single Bayer raw images (thesis ch. 3).
 
+The package is grouped by concern: :mod:`reconstruction.model` (what is solved: the
+operators, the image formation, the priors, one patch's problem),
+:mod:`reconstruction.solve` (how: the solvers, the weights' search, the patches) and
+:mod:`reconstruction.evaluate` (how well: metrics, residual aberration, scoreboards). The
+job sits at the top: :mod:`~reconstruction.options` and :mod:`~reconstruction.option_table`
+(the options), :mod:`~reconstruction.choices` (every automatic choice, made once),
+:mod:`~reconstruction.reconstruct` (the job) and :mod:`~reconstruction.result` (its
+files), with :mod:`~reconstruction.baselines`, the demosaicing and warping methods that
+the model, the weights and the evaluation all use.
+
 Contents
 --------
-:mod:`reconstruction.operators`
+:mod:`reconstruction.model.operators`
     M, Ω, Φ, B and the priors' difference operators, each with adjoint and dot test.
 :class:`LatentSpace`, :class:`ImageFormation`, :func:`build_formation`
     A = M·Ω·Φ·B (3.1) or its direct-colour form (3.27), per patch.
@@ -10,7 +20,7 @@ Contents
     The prior combinations of Table 3.1.
 :class:`Problem`
     One patch's problem: data, A, priors, weights, non-negativity.
-:mod:`reconstruction.solvers`
+:mod:`reconstruction.solve.solvers`
     ADMM with the exact FFT quadratic step and preconditioned CG (§3.7).
 :func:`select_weights`
     Algorithm 3 with the MDC, MSE and demosaicing criteria (§3.6).
@@ -31,9 +41,8 @@ Contents
 """
 
 from reconstruction.baselines import BASELINES, baseline
-from reconstruction.evaluation import Evaluation, Score, baseline_images, evaluate
-from reconstruction.image_formation import ImageFormation, LatentSpace, build_formation
-from reconstruction.metrics import (
+from reconstruction.evaluate.evaluation import Evaluation, Score, baseline_images, evaluate
+from reconstruction.evaluate.metrics import (
     ColourErrors,
     SpectralErrors,
     colour_errors,
@@ -41,12 +50,7 @@ from reconstruction.metrics import (
     registration_scale,
     spectral_errors,
 )
-from reconstruction.options import OptionError, ReconstructOptions
-from reconstruction.patches import PatchOptions, SolverOptions, reconstruct_patches
-from reconstruction.prior_terms import PRIORS, PriorTerm, prior_terms
-from reconstruction.problem import Problem
-from reconstruction.reconstruct import Reconstruction, reconstruct
-from reconstruction.residual_aberration import (
+from reconstruction.evaluate.residual_aberration import (
     PatchRegions,
     ResidualAberration,
     SpectralStripErrors,
@@ -55,7 +59,13 @@ from reconstruction.residual_aberration import (
     residual_aberration,
     spectral_strip_errors,
 )
-from reconstruction.weights import CRITERIA, WeightSelection, select_weights
+from reconstruction.model.image_formation import ImageFormation, LatentSpace, build_formation
+from reconstruction.model.prior_terms import PRIORS, PriorTerm, prior_terms
+from reconstruction.model.problem import Problem
+from reconstruction.options import OptionError, ReconstructOptions
+from reconstruction.reconstruct import Reconstruction, reconstruct
+from reconstruction.solve.patches import PatchOptions, SolverOptions, reconstruct_patches
+from reconstruction.solve.weights import CRITERIA, WeightSelection, select_weights
 
 __all__ = [
     "BASELINES",

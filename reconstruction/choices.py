@@ -6,9 +6,9 @@ what is in effect: one :class:`Choice` per setting, with its value, where it cam
 (given, the default, evidence in the image, or following from other choices) and why, in
 words and numbers. :func:`~reconstruction.reconstruct.reconstruct` resolves the options
 once, before any work, logs every choice in ``log.json`` (``choices``), and the layers
-below (:class:`~reconstruction.patches.SolverOptions`,
-:func:`~reconstruction.image_formation.build_formation`,
-:class:`~reconstruction.operators.Dispersion`) take these values explicitly: they have no
+below (:class:`~reconstruction.solve.patches.SolverOptions`,
+:func:`~reconstruction.model.image_formation.build_formation`,
+:class:`~reconstruction.model.operators.Dispersion`) take these values explicitly: they have no
 defaults of their own to disagree with.
 
 Every choice can be overridden by giving the option (``reconstruct(..., option=value)``,
@@ -29,11 +29,11 @@ import numpy as np
 from scipy.optimize import nnls
 
 from labkit.cfa import channel_index
-from reconstruction.band_balance import BAND_BALANCE
-from reconstruction.image_formation import DISCRETE, LatentSpace
-from reconstruction.operators import SpectralGradient
-from reconstruction.problem import SUGGESTED_SMOOTHNESS
-from reconstruction.solvers.admm import default_rtol
+from reconstruction.model.band_balance import BAND_BALANCE
+from reconstruction.model.image_formation import DISCRETE, LatentSpace
+from reconstruction.model.operators import SpectralGradient
+from reconstruction.model.problem import SUGGESTED_SMOOTHNESS
+from reconstruction.solve.solvers.admm import default_rtol
 
 SOURCES = {
     "given": "given",

@@ -20,9 +20,9 @@ import numpy as np
 
 from calibration.model_domain import EXTRAPOLATIONS
 from labkit.errors import DataError
-from reconstruction.operators.basis import KERNELS
-from reconstruction.operators.dispersion import INTERPOLATIONS
-from reconstruction.prior_terms import PRIORS
+from reconstruction.model.operators.basis import KERNELS
+from reconstruction.model.operators.dispersion import INTERPOLATIONS
+from reconstruction.model.prior_terms import PRIORS
 
 CORRECTIONS = ("model", "warp")
 """How a dispersion model is undone: Φ inside the problem (3.1), or warping after (§3.9.2)."""

@@ -28,7 +28,8 @@ from labkit.cfa import check_layout
 from labkit.errors import ConfigError, DataError
 from labkit.spectra import Spectra
 from reconstruction.choices import Choices, resolve_choices
-from reconstruction.image_formation import DISCRETE, LatentSpace
+from reconstruction.model.image_formation import DISCRETE, LatentSpace
+from reconstruction.model.prior_terms import PriorTerm, prior_terms
 from reconstruction.option_table import (
     CORRECTIONS,
     LATENTS,
@@ -36,8 +37,7 @@ from reconstruction.option_table import (
     REFERENCES,
     OptionValueError,
 )
-from reconstruction.prior_terms import PriorTerm, prior_terms
-from reconstruction.weights import CRITERIA
+from reconstruction.solve.weights import CRITERIA
 
 __all__ = ["CORRECTIONS", "LATENTS", "REFERENCES", "OptionError", "ReconstructOptions"]
 
@@ -144,33 +144,33 @@ class ReconstructOptions:
         run time (figures in docs/notes/solver.md).
     prior : str
         ``EdgeL2`` (default): the L2 prior weighted per pixel and direction by the raw
-        image's own edges (:mod:`reconstruction.edge_weights`), so that pixels a Bayer
+        image's own edges (:mod:`reconstruction.model.edge_weights`), so that pixels a Bayer
         channel does not sample are filled along edges rather than across; a combination
         of Table 3.1 (``L1``, ``L2``, ``Lap1``, ``Lap2``, ``L1L1``, ``L2L2``,
         ``L1SpatialLap2``, ``L1SpectralLap2``); or ``VTV``: vectorial total variation
         ‖∇xy I‖₂,₁, which places edges at the same position in every band
-        (:mod:`reconstruction.prior_terms`).
+        (:mod:`reconstruction.model.prior_terms`).
     nonneg : bool
         Constrain the latent image to be non-negative.
     spectral_smoothness : float, optional
         σ of the spectral roughness term σ‖S I‖² (normalised units; beyond the thesis;
-        :class:`~reconstruction.operators.SpectralRoughness`): among the spectra the data
+        :class:`~reconstruction.model.operators.SpectralRoughness`): among the spectra the data
         and the prior cannot tell apart, the solve picks the smoothest rather than the
         smallest, without pulling a patch's mean colour. Default
-        :data:`~reconstruction.problem.SUGGESTED_SMOOTHNESS` (1e-3) for a spectral latent
+        :data:`~reconstruction.model.problem.SUGGESTED_SMOOTHNESS` (1e-3) for a spectral latent
         image: lower spectral, colour and edge errors than σ = 0, weights the DMC
         determines well, and an optimum the default solve reaches within 1e-4; on the
         validation matrix (``labkit bench matrix``) the lower spectral error on every row,
         narrow-band light included, though there it biases the raw colour (measurements
-        in :mod:`reconstruction.problem`). 0 is the thesis' problem. Spectral latent only
+        in :mod:`reconstruction.model.problem`). 0 is the thesis' problem. Spectral latent only
         (default 0 for ``latent="colour"``). The log's ``choices`` records the image's
         mean-colour misfit of (6.1) as evidence.
     band_balance : float, optional
         γ in [0, 1] of the L2 and EdgeL2 priors' band balance
-        (:mod:`reconstruction.band_balance`; beyond the thesis): band b's spatial gradient
+        (:mod:`reconstruction.model.band_balance`; beyond the thesis): band b's spatial gradient
         is weighed by ``f_b ∝ (its share of the camera's response) ** γ``, so that a band
         the camera barely senses is not smoothed over many more pixels than the others.
-        Default :data:`~reconstruction.band_balance.BAND_BALANCE` (0.5) for EdgeL2 with
+        Default :data:`~reconstruction.model.band_balance.BAND_BALANCE` (0.5) for EdgeL2 with
         spectral smoothness σ > 0, which ties a weakly sensed band to its neighbours; 0
         (every band alike, the thesis) otherwise, the only value the other priors, σ = 0
         and a colour latent image take. The plain L2 prior takes it if asked for, but not
@@ -182,7 +182,7 @@ class ReconstructOptions:
         stronger demosaic: sharper weights for edge-preserving priors, e.g. VTV; not for
         narrow-band light), ``"auto:mdc"``, ``"auto:msec"`` (needs `truth`), or fixed
         weights (``"fixed:0.01"`` or a sequence), in normalised units
-        (:mod:`reconstruction.weights`).
+        (:mod:`reconstruction.solve.weights`).
     latent : {"spectral", "colour"}
         Problem (3.1), or direct colour estimation (3.27).
     reference : {"auto", "mean-colour", None}
@@ -195,17 +195,17 @@ class ReconstructOptions:
     kernel : {"gaussian", "sinc"}
         Kernel of the spectral basis. A response tabulated at exactly the band centres (a
         sensor map, :meth:`calibration.ChannelSensitivity.as_response`) is a discrete model
-        whatever the kernel (:class:`~reconstruction.image_formation.LatentSpace`).
+        whatever the kernel (:class:`~reconstruction.model.image_formation.LatentSpace`).
     rtol : float, optional
         ADMM relative tolerance per patch; default
-        :func:`~reconstruction.solvers.admm.default_rtol`: 1e-5 when
+        :func:`~reconstruction.solve.solvers.admm.default_rtol`: 1e-5 when
         ``spectral_smoothness`` > 0, which brings each patch's objective within 1e-4 of
         its optimum for every prior, and 1e-4 at σ = 0.
     max_iter : int
         ADMM iteration limit per patch.
     exact : bool, optional
         With non-negativity and L2-type priors, solve every patch exactly (projected-Newton
-        active-set method; the ``"exact"`` method of :func:`~reconstruction.solvers.solve`).
+        active-set method; the ``"exact"`` method of :func:`~reconstruction.solve.solvers.solve`).
         None (default): with spectral smoothness σ > 0, patches whose initial estimate has
         few values at zero are solved exactly and directly (``direct``: no ADMM, faster
         than ADMM's solve to within 1e-4), the others by ADMM; at σ = 0, ADMM. At σ = 0
@@ -227,8 +227,8 @@ class ReconstructOptions:
         Size of those patches, px (even).
     scheduler : str or distributed.Client, optional
         Dask scheduler of the patches (see
-        :func:`~reconstruction.patches.reconstruct_patches`); default
-        :func:`~reconstruction.patches.default_scheduler`.
+        :func:`~reconstruction.solve.patches.reconstruct_patches`); default
+        :func:`~reconstruction.solve.patches.default_scheduler`.
 
     Raises
     ------

@@ -30,16 +30,19 @@ from calibration.dispersion_model import DispersionModel
 from calibration.warp import correct_channels, correct_spectral
 from labkit.blas_threads import fixed_blas_threads
 from labkit.errors import DataError
-from reconstruction.band_balance import balance_terms, band_factors
 from reconstruction.choices import (
     Choices,
     image_facts,
     reference_scale,
     resolve_choices,
 )
-from reconstruction.image_formation import LatentSpace, build_formation
+from reconstruction.model.band_balance import balance_terms, band_factors
+from reconstruction.model.image_formation import LatentSpace, build_formation
+from reconstruction.model.prior_terms import PriorTerm
+from reconstruction.model.problem import Problem
 from reconstruction.options import ReconstructOptions
-from reconstruction.patches import (
+from reconstruction.result import Reconstruction
+from reconstruction.solve.patches import (
     SERIAL_SCHEDULERS,
     PatchOptions,
     SolverOptions,
@@ -49,12 +52,9 @@ from reconstruction.patches import (
     reconstruct_patches,
     texture,
 )
-from reconstruction.prior_terms import PriorTerm
-from reconstruction.problem import Problem
-from reconstruction.result import Reconstruction
-from reconstruction.solvers.admm import absolute_tolerance
-from reconstruction.weights import select_weights
-from reconstruction.worker_pool import start_worker_pool
+from reconstruction.solve.solvers.admm import absolute_tolerance
+from reconstruction.solve.weights import select_weights
+from reconstruction.solve.worker_pool import start_worker_pool
 
 MAX_RAW_MAGNITUDE = 1e30
 """Largest abs(raw value) accepted (and smallest non-zero peak, as its inverse): the spectral
@@ -203,7 +203,7 @@ class PreparedProblem:
         The log so far (JSON-ready).
     terms : tuple of PriorTerm
         The prior's terms as the patches solve them: the L2 gradient terms with the band
-        factors of `space` (:mod:`reconstruction.band_balance`) when γ > 0.
+        factors of `space` (:mod:`reconstruction.model.band_balance`) when γ > 0.
     choices : Choices
         Every setting in effect, with where it came from and why
         (:func:`~reconstruction.choices.resolve_choices`); the stages read them here.

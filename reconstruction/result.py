@@ -31,7 +31,7 @@ from labkit.io import (
     write_text_atomic,
 )
 from labkit.io.output_folder import staged_output_folder
-from reconstruction.image_formation import LatentSpace
+from reconstruction.model.image_formation import LatentSpace
 
 
 @dataclass

@@ -46,9 +46,9 @@ DEFERRED_IMPORTS = {
 }
 
 
-def _contract(repo_root: Path, kind: str) -> dict:
+def _contract(repo_root: Path, contract_id: str) -> dict:
     config = tomllib.loads((repo_root / "pyproject.toml").read_text())["tool"]["importlinter"]
-    (contract,) = [c for c in config["contracts"] if c["type"] == kind]
+    (contract,) = [c for c in config["contracts"] if c["id"] == contract_id]
     return contract
 
 
@@ -137,6 +137,79 @@ def test_the_inside_function_scan_sees_relative_and_nested_imports(tmp_path: Pat
     )
     found = _imports_inside_functions(source, "calibration.example")
     assert found == [(4, "calibration.bands"), (5, "labkit.io"), (7, "reconstruction")]
+
+
+def _private_imports(path: Path, module: str, repo_root: Path) -> list[tuple[int, str]]:
+    """(line, name) of first-party private names `path` imports against the rule.
+
+    A private name (a leading underscore) is part of its module's insides. Another module
+    may import it only from a private module (``_name.py``, or a private package) of a
+    package it belongs to itself: helpers shared by siblings live in such a module, not in
+    one of the siblings.
+    """
+    package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = package.rsplit(".", node.level - 1)[0]
+                base = f"{anchor}.{base}" if base else anchor
+            names = [f"{base}.{alias.name}" for alias in node.names]
+        elif isinstance(node, ast.Import):
+            names = [alias.name for alias in node.names]
+        else:
+            continue
+        for name in names:
+            parts = name.split(".")
+            if parts[0] not in ROOT_PACKAGES:
+                continue
+            private = [i for i, part in enumerate(parts) if part.startswith("_")]
+            if not private or parts[private[0]] == "__future__":
+                continue
+            owner = ".".join(parts[: private[0]])
+            inside_owner = f"{module}.".startswith(f"{owner}.")
+            as_path = repo_root.joinpath(*parts)
+            is_module = as_path.with_suffix(".py").is_file() or as_path.is_dir()
+            if not inside_owner or (private[0] == len(parts) - 1 and not is_module):
+                found.append((node.lineno, name))
+    return found
+
+
+def test_private_names_are_shared_only_through_private_modules(repo_root: Path) -> None:
+    crossing = [
+        f"{path.relative_to(repo_root)}:{line} imports {name}"
+        for path in _library_files(repo_root)
+        for line, name in _private_imports(path, _module_name(path, repo_root), repo_root)
+    ]
+    assert not crossing, (
+        "these modules import private names of others; move what siblings share into a "
+        "private module of their package (named for what it holds), or make it public: "
+        f"{crossing}"
+    )
+
+
+def test_the_private_import_scan_sees_each_kind(tmp_path: Path) -> None:
+    package = tmp_path / "calibration" / "disks"
+    package.mkdir(parents=True)
+    for name in ("fit", "_pool", "model"):
+        (package / f"{name}.py").write_text("")
+    source = package / "keypoints.py"
+    source.write_text(
+        "from calibration.disks._pool import _finish\n"
+        "from calibration.disks import _pool\n"
+        "from calibration.disks.fit import _start\n"
+        "from .model import _DiskModel, DiskModel\n"
+        "from calibration._hdr_inputs import load_scene_hdr\n"
+        "from __future__ import annotations\n"
+    )
+    found = _private_imports(source, "calibration.disks.keypoints", tmp_path)
+    assert found == [
+        (3, "calibration.disks.fit._start"),
+        (4, "calibration.disks.model._DiskModel"),
+    ]
+    outside = _private_imports(source, "labkit.cli.calibrate", tmp_path)
+    assert (5, "calibration._hdr_inputs.load_scene_hdr") in outside
 
 
 def test_the_import_contracts_are_kept(repo_root: Path) -> None:

@@ -203,7 +203,7 @@ class ChannelSensitivity:
         of its own Green response, and bands the camera barely sees (e.g. 400 and 700 nm)
         are hundreds of times smaller than the brightest. A reconstruction treats a response
         sampled only at its bands as a discrete model
-        (:class:`reconstruction.image_formation.LatentSpace`).
+        (:class:`reconstruction.model.image_formation.LatentSpace`).
 
         Raises
         ------

@@ -64,7 +64,7 @@ figure.tight_layout()
 # :meth:`~labkit.real_chart.RealInputs.reconstruct_options` gives the CFA layout, the sensor
 # map as the response, its bands and the spectral dispersion model; the rest are the
 # defaults. Its :attr:`~labkit.real_chart.RealInputs.scorer` scores the result against the
-# chart (:class:`reconstruction.chart_scores.ChartScorer`).
+# chart (:class:`reconstruction.evaluate.chart_scores.ChartScorer`).
 result = reconstruct(real.synthesis.raw.raw, **real.reconstruct_options())
 score = real.scorer.score(result)
 print({name: round(value, 4) for name, value in score.items()})

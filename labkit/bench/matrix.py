@@ -457,7 +457,7 @@ def _real_row(name: str, real: Any, *, response: Any = None) -> Row:
 
 def _real_edges(real: Any, images: dict[str, np.ndarray]) -> dict[str, dict[str, float | None]]:
     """Edge-strip RMSE R and B of each raw colour image of `real`'s chart, by name
-    (:meth:`reconstruction.chart_scores.ChartScorer.edge_rmse`)."""
+    (:meth:`reconstruction.evaluate.chart_scores.ChartScorer.edge_rmse`)."""
     return {
         name: {f"edge_rmse_{c}": edge[c] for c in "RB"}
         for name, edge in real.scorer.edge_rmse(images).items()
@@ -593,7 +593,7 @@ def simulated_rows(rig_path: Path, *, keep: Callable[[str], bool] = lambda _: Tr
 
 
 def _disk_offsets(rgb: np.ndarray) -> dict[str, float | None]:
-    from reconstruction.metrics import disk_channel_offsets
+    from reconstruction.evaluate.metrics import disk_channel_offsets
 
     try:
         offsets = disk_channel_offsets(np.asarray(rgb, dtype=np.float64))

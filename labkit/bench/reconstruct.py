@@ -271,7 +271,7 @@ def _notes(
     full: bool,
 ) -> list[str | Plot | Table]:
     """What the stage's report says under its heading (the scaling table apart)."""
-    from reconstruction.evaluation import baseline_images
+    from reconstruction.evaluate.evaluation import baseline_images
 
     baselines, _ = baseline_images(main_case["raw"], cfa=main_case["cfa"])
     notes: list[str | Plot | Table] = [

@@ -124,7 +124,7 @@ def simulated_case(
     }
     if scene == "colorchecker" and flat_fraction == 0:
         from labkit.sim.scenes import colorchecker_patch_boxes
-        from reconstruction.residual_aberration import STRIP_PX
+        from reconstruction.evaluate.residual_aberration import STRIP_PX
 
         boxes = colorchecker_patch_boxes(world.scene(scene))
         if np.min(boxes[:, 2:] - boxes[:, :2]) > 2 * STRIP_PX + 2:  # patches have centres
@@ -206,7 +206,7 @@ def errors(case: dict[str, Any], result) -> dict[str, float]:
     """Spectral RMSE/MRAE/GOF (registered, 8-px border left out), colour RMSE per channel,
     and on the ColorChecker the edge-strip RMSE per channel (:func:`edge_errors`) and the
     spectral RMSE in the strips, centres and surround (:func:`strip_errors`)."""
-    from reconstruction.metrics import colour_errors, spectral_errors
+    from reconstruction.evaluate.metrics import colour_errors, spectral_errors
 
     inner = (slice(8, -8), slice(8, -8))
     rendered = case["truth"](result.wavelengths_nm)

@@ -9,7 +9,8 @@ the runs within that of each other, iteration counts within 25 % of each other.
 
 The cases are the patch problems of the reconstruction benchmark's scenes (recorded from
 :func:`~reconstruction.reconstruct.reconstruct` as it poses them); the solver's tests run
-the same measurement on their own problems (``tests/reconstruction/test_admm_reproducibility.py``).
+the same measurement on their own problems
+(``tests/reconstruction/solve/test_admm_reproducibility.py``).
 """
 
 from __future__ import annotations
@@ -101,7 +102,7 @@ def reference_optimum(problem) -> tuple[float, str]:
     non-negative optimum is degenerate (σ = 0), a KKT residual of 1e-8 still leaves points
     2e-4 above it, so the active-set answer depends on where it starts.
     """
-    from reconstruction.solvers import solve
+    from reconstruction.solve.solvers import solve
 
     l2_type = not problem.has_l1_penalty
     if l2_type and not problem.nonneg:
@@ -130,11 +131,11 @@ def stability_row(name: str, problem, *, method: str = "admm", **options: Any) -
         Row label.
     problem : Problem
     method : str
-        The solver (:data:`~reconstruction.solvers.SOLVE_METHODS`).
+        The solver (:data:`~reconstruction.solve.solvers.SOLVE_METHODS`).
     **options
         Its keyword options (rtol, x0, …).
     """
-    from reconstruction.solvers import SOLVE_METHODS
+    from reconstruction.solve.solvers import SOLVE_METHODS
 
     reference, reference_method = reference_optimum(problem)
     unpinned: Callable = SOLVE_METHODS[method].__wrapped__  # type: ignore[attr-defined]
@@ -179,7 +180,7 @@ def stability_table(rows: list[StabilityRow], *, title: str) -> Table:
 
 def recorded_patch_problems(case: dict[str, Any], **options: Any) -> list[tuple[Any, dict]]:
     """(problem, solve options) of every patch solve :func:`reconstruct` makes for `case`."""
-    import reconstruction.patches as patches
+    import reconstruction.solve.patches as patches
     from labkit.bench.reconstruct_cases import run_case
 
     recorded: list[tuple[Any, dict]] = []

@@ -221,7 +221,7 @@ def _check_geometry(args: argparse.Namespace, shape: tuple[int, int], boxes, lab
     if boxes is None and labels is None:
         return
     from labkit.errors import DataError
-    from reconstruction.residual_aberration import patch_regions
+    from reconstruction.evaluate.residual_aberration import patch_regions
 
     try:
         patch_regions(shape, boxes=boxes, labels=labels)

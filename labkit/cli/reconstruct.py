@@ -167,7 +167,7 @@ def _run(args: argparse.Namespace, job: _Job) -> int:
             warnings.simplefilter("ignore", DomainWarning)
             result = reconstruct(job.raw.raw, job.options, progress=bar.update)
     except OSError as error:
-        from reconstruction.patches import REMOTE_SCHEMES
+        from reconstruction.solve.patches import REMOTE_SCHEMES
 
         if not (args.scheduler or "").startswith(REMOTE_SCHEMES):
             raise
@@ -291,7 +291,7 @@ def _declared(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _scheduler(value: str | None) -> str | None:
-    from reconstruction.patches import probe_scheduler, scheduler_address
+    from reconstruction.solve.patches import probe_scheduler, scheduler_address
 
     if value is None or value in SCHEDULERS:
         return value

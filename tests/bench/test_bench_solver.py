@@ -27,7 +27,7 @@ def test_patch_problems_are_recorded_as_reconstruct_poses_them() -> None:
     problem, kwargs = recorded[0]
     assert problem.nonneg and all(40 <= n <= 48 for n in problem.raw.shape)  # 32 px + pads
     assert problem.formation.dispersion is not None  # Φ used at the corner
-    from reconstruction.solvers import solve
+    from reconstruction.solve.solvers import solve
 
     again = solve(problem, **{k: v for k, v in kwargs.items() if k != "iterations"})
     assert again.report.iterations == kwargs["iterations"]

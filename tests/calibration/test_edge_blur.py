@@ -11,7 +11,7 @@ from labkit.errors import DataError
 from labkit.rig import default_rig_path, load_rig
 from labkit.sim import SimulatedRig
 from labkit.sim.scenes import colorchecker_patch_boxes
-from reconstruction.residual_aberration import labels_from_boxes
+from reconstruction.evaluate.residual_aberration import labels_from_boxes
 
 SHAPE = (120, 160)
 BOXES = np.array([(x0, y0, x0 + 40, y0 + 40) for y0 in (10.3, 65.7) for x0 in (10.2, 60.6, 110.9)])

@@ -11,7 +11,7 @@ from _helpers import planted_dispersion_model
 from calibration.dispersion_model import DispersionModel
 from calibration.model_domain import CalibratedRegion, domain_use
 from labkit.errors import ConfigError, DataError
-from reconstruction.operators import Dispersion, dispersion_samples
+from reconstruction.model.operators import Dispersion, dispersion_samples
 
 
 class SlopeField:

@@ -527,9 +527,9 @@ def test_a_scheduler_that_accepts_and_never_answers_is_an_error(
     import threading
     import time
 
-    import reconstruction.patches
+    import reconstruction.solve.patches
 
-    monkeypatch.setattr(reconstruction.patches, "SCHEDULER_TIMEOUT_S", 2.0)
+    monkeypatch.setattr(reconstruction.solve.patches, "SCHEDULER_TIMEOUT_S", 2.0)
     server = socket.socket()
     server.bind(("127.0.0.1", 0))
     server.listen(8)

@@ -16,18 +16,23 @@ from typing import Any
 
 import numpy as np
 import pytest
-from _problems import RESPONSE, blobs, latent_space, noisy_raw, normalised_colour
-from test_dispersion_operator import ConstantField
-from test_image_formation import spectral_model
+from _problems import (
+    RESPONSE,
+    ConstantField,
+    blobs,
+    normalised_colour,
+    shifted_nonneg_problem,
+    spectral_model,
+)
 from threadpoolctl import threadpool_limits
 
 from labkit.spectra import camera_response
-from reconstruction.image_formation import ImageFormation, LatentSpace, build_formation
-from reconstruction.prior_terms import PRIORS
-from reconstruction.problem import Problem
+from reconstruction.model.image_formation import ImageFormation, LatentSpace, build_formation
+from reconstruction.model.prior_terms import PRIORS
+from reconstruction.model.problem import Problem
 from reconstruction.reconstruct import reconstruct
-from reconstruction.solvers import solve
-from reconstruction.weights import select_weights
+from reconstruction.solve.solvers import solve
+from reconstruction.solve.weights import select_weights
 
 
 def under_blas_threads(count: int, func: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
@@ -36,25 +41,14 @@ def under_blas_threads(count: int, func: Callable[..., Any], *args: Any, **kwarg
         return func(*args, **kwargs)
 
 
-def shifted_nonneg_problem() -> Problem:
-    """32², a planted uniform shift (Φ), L2 + non-negativity: a cold start from zeros takes
-    tens of ADMM iterations, whose count followed the BLAS thread count before the library
-    fixed it."""
-    rng = np.random.default_rng(8)
-    model = spectral_model(ConstantField((0.7, -1.3), per_nm=True))
-    a = build_formation(latent_space(), (32, 32), "GBRG", model=model, interpolation="bilinear")
-    _, raw = noisy_raw(a, rng)
-    return Problem(a, raw, PRIORS["L2"], (0.05,), True)
-
-
 #: Run in a fresh interpreter: the cold-start solve of :func:`shifted_nonneg_problem`,
 #: printed as a hash of its bits, its iteration count and its objective.
 _SOLVE_SCRIPT = """
 import hashlib, sys
 import numpy as np
 sys.path[:0] = sys.argv[1:]
-from test_blas_thread_independence import shifted_nonneg_problem
-from reconstruction.solvers import solve
+from _problems import shifted_nonneg_problem
+from reconstruction.solve.solvers import solve
 from threadpoolctl import threadpool_info
 p = shifted_nonneg_problem()
 s = solve(p, x0=np.zeros(p.shape), rtol=1e-6)

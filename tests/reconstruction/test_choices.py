@@ -9,19 +9,17 @@ import json
 
 import numpy as np
 import pytest
-from _problems import RESPONSE, blobs
-from test_dispersion_operator import ConstantField
-from test_image_formation import spectral_model
+from _problems import RESPONSE, ConstantField, blobs, spectral_model
 
 from labkit.cli.reconstruct import CLI_NAMES, _declared
 from labkit.errors import ConfigError, DataError
 from labkit.spectra import Spectra, camera_response
 from reconstruction import OptionError, ReconstructOptions, reconstruct
 from reconstruction.choices import MIN_PAD_PX, SOURCES
-from reconstruction.image_formation import LatentSpace, build_formation
+from reconstruction.model.image_formation import LatentSpace, build_formation
+from reconstruction.model.problem import SUGGESTED_SMOOTHNESS
 from reconstruction.option_table import OPTION_TABLE, OptionSpec
-from reconstruction.patches import SolverOptions
-from reconstruction.problem import SUGGESTED_SMOOTHNESS
+from reconstruction.solve.patches import SolverOptions
 
 RESPONSE_RGB = camera_response(RESPONSE)
 BASE = {"cfa": "GBRG", "response": RESPONSE_RGB, "weights": "fixed:0.01", "patch_px": 32}
@@ -170,7 +168,7 @@ def test_the_layers_below_have_no_defaults_of_their_own() -> None:
     space = LatentSpace.spectral(RESPONSE_RGB)
     with pytest.raises(DataError, match="needs interpolation="):
         build_formation(space, (32, 32), "GBRG", model=model)
-    from reconstruction.operators import Dispersion
+    from reconstruction.model.operators import Dispersion
 
     with pytest.raises(TypeError, match="interpolation"):
         Dispersion(model, space.centres_nm)

@@ -13,7 +13,7 @@ from labkit.cli.reconstruct import CLI_NAMES
 from labkit.errors import ConfigError, DataError
 from labkit.spectra import camera_response
 from reconstruction import OptionError, ReconstructOptions, reconstruct
-from reconstruction.problem import SUGGESTED_SMOOTHNESS
+from reconstruction.model.problem import SUGGESTED_SMOOTHNESS
 
 RESPONSE_RGB = camera_response(RESPONSE)
 BASE = {"cfa": "GBRG", "response": RESPONSE_RGB}

@@ -8,15 +8,13 @@ import warnings
 import numpy as np
 import pytest
 from _helpers import planted_dispersion_model
-from _problems import RESPONSE, blobs, smooth_blobs
-from test_dispersion_operator import ConstantField
-from test_image_formation import spectral_model
+from _problems import RESPONSE, ConstantField, blobs, smooth_blobs, spectral_model
 
 from labkit.cfa import mosaic
 from labkit.errors import DataError, LabkitError
 from labkit.spectra import camera_response
-from reconstruction.image_formation import LatentSpace, build_formation
-from reconstruction.problem import SUGGESTED_SMOOTHNESS
+from reconstruction.model.image_formation import LatentSpace, build_formation
+from reconstruction.model.problem import SUGGESTED_SMOOTHNESS
 from reconstruction.reconstruct import DomainWarning, reconstruct
 
 RESPONSE_RGB = camera_response(RESPONSE)
@@ -411,7 +409,7 @@ def test_every_local_scheduler_gives_the_same_image_and_records() -> None:
     """The pool of processes, threads (the default) and the calling thread solve the same
     patches to the same bits, report every patch to `progress`, and the pool's workers are
     other processes, kept for the next reconstruction."""
-    from reconstruction.worker_pool import worker_pids
+    from reconstruction.solve.worker_pool import worker_pids
 
     raw, settings = six_dispersive_patches(5)
     done: dict[str, list[tuple[int, int]]] = {}
@@ -441,7 +439,7 @@ def test_a_worker_that_dies_breaks_that_run_only() -> None:
     """A pool worker killed between runs: the next run starts a new pool and succeeds."""
     import signal
 
-    from reconstruction.worker_pool import worker_pids, worker_pool
+    from reconstruction.solve.worker_pool import worker_pids, worker_pool
 
     worker_pool().submit(os.getpid).result()
     os.kill(worker_pids()[0], signal.SIGKILL)
@@ -463,7 +461,7 @@ def test_sensor_map_bands_take_their_filters_light() -> None:
     from dataclasses import replace
 
     from labkit.spectra import Spectra
-    from reconstruction.image_formation import DISCRETE
+    from reconstruction.model.image_formation import DISCRETE
     from reconstruction.options import ReconstructOptions, filter_light
 
     bands = np.arange(400.0, 701.0, 50.0)

@@ -15,7 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from labkit.errors import DataError
-from reconstruction.metrics import colour_errors, registration_scale, spectral_errors
+from reconstruction.evaluate.metrics import colour_errors, registration_scale, spectral_errors
 
 SHAPE = (16, 20, 5)
 

@@ -29,12 +29,12 @@ from hypothesis import strategies as st
 from labkit.cfa import channel_index, mosaic
 from labkit.errors import DataError
 from labkit.spectra import camera_response
-from reconstruction.image_formation import ImageFormation, LatentSpace, build_formation
-from reconstruction.operators import dot_test
-from reconstruction.prior_terms import PRIORS
-from reconstruction.problem import Problem
+from reconstruction.model.image_formation import ImageFormation, LatentSpace, build_formation
+from reconstruction.model.operators import dot_test
+from reconstruction.model.prior_terms import PRIORS
+from reconstruction.model.problem import Problem
 from reconstruction.reconstruct import reconstruct
-from reconstruction.solvers import FourierSolver, conjugate_gradient, solve
+from reconstruction.solve.solvers import FourierSolver, conjugate_gradient, solve
 
 RESPONSE_RGB = camera_response(RESPONSE)
 SPACE = LatentSpace.spectral(RESPONSE_RGB)
