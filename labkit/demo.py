@@ -22,12 +22,15 @@ the whole job runs on a laptop (each stage's time is in the report).
 from __future__ import annotations
 
 import json
+from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from labkit.demo_steps import (
+    DispersionModels,
+    SavedReconstruction,
     Stages,
     method_figures,
     reconstruct_and_save,
@@ -45,6 +48,9 @@ from labkit.plots import (
 from labkit.report import Report
 from labkit.rig import Rig, default_rig_path, load_rig
 from labkit.sim.plans import simulated_plans
+
+if TYPE_CHECKING:
+    from reconstruction import Evaluation
 
 DEMO_SHAPE = (768, 1024)
 """Sensor size of the demo, (rows, cols) px."""
@@ -91,9 +97,9 @@ def run_demo(out: str | Path, *, rig_path: str | Path | None = None, quick: bool
     stage.close()
     times = stage.seconds
     results["seconds"] = times
-    results["capture"] = captures
-    results["calibration"] = models["summary"]
-    results["reconstruction"] = {name: r["summary"] for name, r in recons.items()}
+    results["capture"] = {name: capture.as_dict() for name, capture in captures.items()}
+    results["calibration"] = models.summary
+    results["reconstruction"] = {name: r.saved.summary for name, r in recons.items()}
     from labkit.sim import SimulatedRig
 
     world = SimulatedRig(rigs["calibration"])
@@ -107,7 +113,49 @@ def run_demo(out: str | Path, *, rig_path: str | Path | None = None, quick: bool
     return page
 
 
-def _capture(rigs: dict[str, Rig], out: Path) -> dict[str, Any]:
+@dataclass(frozen=True)
+class CaptureSummary:
+    """One plan's capture.
+
+    Attributes
+    ----------
+    frames, dark_frames : int
+        Frames recorded, dark frames among them.
+    seconds : float
+        The capture's wall time, s.
+    exposures_s : dict of str to list of float
+        The bracket auto-bracketing chose for each ``scene / illumination``, s.
+    """
+
+    frames: int
+    dark_frames: int
+    seconds: float
+    exposures_s: dict[str, list[float]]
+
+    def as_dict(self) -> dict[str, Any]:
+        """The fields as a JSON-ready dictionary."""
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class SceneReconstruction:
+    """One reconstruction of a scene's raw image, saved."""
+
+    scene: str
+    raw: np.ndarray
+    cfa: str
+    saved: SavedReconstruction
+
+
+@dataclass(frozen=True)
+class SceneEvaluation:
+    """One scene's scoreboard and the report's figures of it."""
+
+    evaluation: Evaluation
+    figures: dict[str, Any]
+
+
+def _capture(rigs: dict[str, Rig], out: Path) -> dict[str, CaptureSummary]:
     from labkit.protocol import Engine
     from labkit.protocol.hardware import open_hardware
     from labkit.session import Session
@@ -123,12 +171,12 @@ def _capture(rigs: dict[str, Rig], out: Path) -> dict[str, Any]:
             if not record["dark"]:
                 key = f"{record['scene']} / {record['illumination']}"
                 exposures.setdefault(key, []).append(record["exposure_s"])
-        summary[name] = {
-            "frames": len(records),
-            "dark_frames": sum(bool(r["dark"]) for r in records),
-            "seconds": report.elapsed_s,
-            "exposures_s": {k: sorted(set(v)) for k, v in exposures.items()},
-        }
+        summary[name] = CaptureSummary(
+            frames=len(records),
+            dark_frames=sum(bool(r["dark"]) for r in records),
+            seconds=report.elapsed_s,
+            exposures_s={k: sorted(set(v)) for k, v in exposures.items()},
+        )
     return summary
 
 
@@ -139,7 +187,7 @@ def _hdr(out: Path) -> None:
     run_hdr(sessions, out / "hdr", previews=True)
 
 
-def _calibrate(rig: Rig, out: Path) -> dict[str, Any]:
+def _calibrate(rig: Rig, out: Path) -> DispersionModels:
     from calibration._hdr_inputs import load_scene_hdr
     from calibration.bands import filter_bands
     from calibration.dispersion_calibration import calibrate_dispersion
@@ -158,10 +206,10 @@ def _calibrate(rig: Rig, out: Path) -> dict[str, Any]:
     grid = sorted({*used, *np.arange(np.ceil(used[0] / 5) * 5, used[-1], 5.0).tolist()})
     error = model_error(spectral.model, lens, float(spectral.model.reference), grid)
     summary["spectral"]["error_vs_lens_px"] = error
-    return {"spectral": spectral.model, "colour": colour.model, "summary": summary}
+    return DispersionModels(spectral.model, colour.model, summary)
 
 
-def _reconstruct(rig: Rig, out: Path, models: dict[str, Any]) -> dict[str, Any]:
+def _reconstruct(rig: Rig, out: Path, models: DispersionModels) -> dict[str, SceneReconstruction]:
     from labkit.io import read_raw_exr
     from labkit.sim import SimulatedRig
 
@@ -183,33 +231,26 @@ def _reconstruct(rig: Rig, out: Path, models: dict[str, Any]) -> dict[str, Any]:
     results = {}
     for scene, name, slug, variant in jobs:
         image = read_raw_exr(out / "hdr" / scene / "unfiltered.exr")
-        result, summary = reconstruct_and_save(
+        saved = reconstruct_and_save(
             image.raw,
             out / "reconstruction" / slug,
             name=name,
             cfa=image.cfa,
             response=response,
-            dispersion=models["spectral"],
+            dispersion=models.spectral,
             **variant,
         )
-        results[name] = {
-            "scene": scene,
-            "slug": slug,
-            "result": result,
-            "raw": image.raw,
-            "cfa": image.cfa,
-            "summary": summary,
-        }
+        results[name] = SceneReconstruction(scene, image.raw, image.cfa, saved)
     return results
 
 
 def _evaluate(
     rig: Rig,
     out: Path,
-    models: dict[str, Any],
-    recons: dict[str, Any],
+    models: DispersionModels,
+    recons: dict[str, SceneReconstruction],
     results: dict[str, Any],
-) -> dict[str, Any]:
+) -> dict[str, SceneEvaluation]:
     from labkit.sim import SimulatedRig, colorchecker_patch_boxes
     from labkit.sim.truth import colour_truth, spectral_truth
     from reconstruction import baseline_images, evaluate
@@ -218,16 +259,15 @@ def _evaluate(
     evaluations = {}
     results["evaluation"] = {}
     for scene in RECONSTRUCTED:
-        ours = {n: r for n, r in recons.items() if r["scene"] == scene}
-        first = next(iter(ours.values()))
-        raw, cfa = first["raw"], first["cfa"]
-        images, seconds = baseline_images(raw, cfa=cfa, colour_dispersion=models["colour"])
+        ours = {n: r.saved for n, r in recons.items() if r.scene == scene}
+        first = next(r for r in recons.values() if r.scene == scene)
+        raw, cfa = first.raw, first.cfa
+        images, seconds = baseline_images(raw, cfa=cfa, colour_dispersion=models.colour)
         for name, r in ours.items():
-            images[f"spectral: {name}"] = r["result"].raw_colour
-            seconds[f"spectral: {name}"] = r["summary"]["seconds"]
+            images[f"spectral: {name}"] = r.result.raw_colour
+            seconds[f"spectral: {name}"] = r.summary["seconds"]
         spectral = {
-            f"spectral: {n}": (r["result"].spectral, r["result"].wavelengths_nm)
-            for n, r in ours.items()
+            f"spectral: {n}": (r.result.spectral, r.result.wavelengths_nm) for n, r in ours.items()
         }
         boxes = colorchecker_patch_boxes(world.scene(scene)) if scene == "colorchecker" else None
         evaluation = evaluate(
@@ -244,7 +284,7 @@ def _evaluate(
         figures = _scene_figures(out, scene, raw, images, evaluation, boxes)
         if boxes is not None:
             figures["spectra"] = _patch_spectra(out, world, scene, boxes, ours)
-        evaluations[scene] = {"evaluation": evaluation, "figures": figures}
+        evaluations[scene] = SceneEvaluation(evaluation, figures)
     return evaluations
 
 
@@ -282,9 +322,9 @@ def _patch_spectra(out, world, scene, boxes, ours) -> str:
     truth = np.stack([spectral_truth(world, scene, fine, pixels=p).mean(axis=0) for p in pixels])
     estimates = {}
     for name, r in ours.items():
-        bands = np.asarray(r["result"].wavelengths_nm)
+        bands = np.asarray(r.result.wavelengths_nm)
         target = np.stack([spectral_truth(world, scene, bands, pixels=p).mean(0) for p in pixels])
-        means = np.stack([r["result"].spectral[p].mean(axis=0) for p in pixels])
+        means = np.stack([r.result.spectral[p].mean(axis=0) for p in pixels])
         scale = (target * means).sum(axis=0) / np.maximum((means * means).sum(axis=0), 1e-300)
         estimates.setdefault("truth, band average", (bands, target))
         estimates[name] = (bands, means * scale)
@@ -307,15 +347,15 @@ def _write_report(report, rigs, rig_file, shape, times, captures, models, recons
     report.figures([("rig_spectra.png", "camera response, lamp and filter transmissions")])
     report.heading("Capture and HDR")
     rows = []
-    for name, summary in captures.items():
-        for key, exposures in summary["exposures_s"].items():
+    for name, capture in captures.items():
+        for key, exposures in capture.exposures_s.items():
             rows.append([name, key, ", ".join(f"{t * 1e3:.4g}" for t in exposures)])
     report.paragraph(
         "Exposures chosen by auto-bracketing (metering, then the shortest set that exposes "
         "every pixel properly); dark frames at every exposure. "
         + "; ".join(
-            f"{n}: {s['frames']} frames ({s['dark_frames']} dark) in {s['seconds']:.1f} s"
-            for n, s in captures.items()
+            f"{n}: {c.frames} frames ({c.dark_frames} dark) in {c.seconds:.1f} s"
+            for n, c in captures.items()
         )
         + "."
     )
@@ -330,7 +370,7 @@ def _write_report(report, rigs, rig_file, shape, times, captures, models, recons
         ],
         width_px=300,
     )
-    calibration = models["summary"]
+    calibration = models.summary
     spectral = calibration["spectral"]
     report.heading("Dispersion calibration")
     report.paragraph(
@@ -368,16 +408,19 @@ def _write_report(report, rigs, rig_file, shape, times, captures, models, recons
             [name, f"{s['seconds']:.1f}", f"{s['bands_nm'][0]:.0f}–{s['bands_nm'][-1]:.0f} "
              f"({len(s['bands_nm'])})", f"{s['weights'][0]:.2g}", str(s["patches"]),
              str(s["phi_used"]), str(s["flat"]), str(s["exact"]), f"{s['median_iterations']:.0f}"]
-            for name, s in ((n, r["summary"]) for n, r in recons.items())
+            for name, s in ((n, r.saved.summary) for n, r in recons.items())
         ],
     )  # fmt: skip
-    reconstruction_notes(report, {n: r["summary"] for n, r in recons.items()})
+    reconstruction_notes(report, {n: r.saved.summary for n, r in recons.items()})
     report.figures(
-        [(f"reconstruction/{r['slug']}/preview.png", f"{n}: sRGB") for n, r in recons.items()],
+        [
+            (f"reconstruction/{r.saved.folder.name}/preview.png", f"{n}: sRGB")
+            for n, r in recons.items()
+        ],
         width_px=340,
     )
     for scene, item in evaluations.items():
-        evaluation, figures = item["evaluation"], item["figures"]
+        evaluation, figures = item.evaluation, item.figures
         report.heading(f"Evaluation: {scene}")
         report.paragraph(
             "Errors are fractions of the mean signal. Edge/centre RMSE: residual "

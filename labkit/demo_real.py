@@ -29,12 +29,14 @@ from __future__ import annotations
 
 import json
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from labkit.demo_steps import (
+    SavedReconstruction,
     Stages,
     method_figures,
     reconstruct_and_save,
@@ -47,6 +49,9 @@ from labkit.plots import plot_patch_spectra
 from labkit.real_chart import REFERENCE_BAND, RealInputs, prepare_real_inputs
 from labkit.report import Report
 from labkit.spectra.datasets import COLORCHECKER_PATCHES
+
+if TYPE_CHECKING:
+    from reconstruction import Evaluation
 
 VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     "defaults": ("defaults", {}),
@@ -105,12 +110,12 @@ def run_real_demo(
         "rig": str(real.rig),
         "scene": real.scene,
         "seconds": stage.seconds,
-        "import": real.session,
-        "hdr": hdr["summary"],
+        "import": real.imported.as_dict(),
+        "hdr": {name: merge.as_dict() for name, merge in hdr.items()},
         "sensor_map": sensor.summary,
         "calibration": models.summary,
-        "reconstruction": {name: r["summary"] for name, r in recons.items()},
-        "evaluation": evaluation["summary"],
+        "reconstruction": {name: r.summary for name, r in recons.items()},
+        "evaluation": evaluation.summary,
     }
     report = Report("labkit demo --real — the thesis' ColorChecker, real frames")
     _write_report(report, results, hdr, sensor, models, recons, evaluation)
@@ -121,11 +126,35 @@ def run_real_demo(
     return page
 
 
-def _reconstruct(real: RealInputs, out: Path, disable: bool | None) -> dict[str, Any]:
+@dataclass(frozen=True)
+class ChartEvaluation:
+    """The evaluation stage of ``labkit demo --real``.
+
+    Attributes
+    ----------
+    summary : dict
+        Patch-centre errors, per-pixel errors and residual aberration (``results.json``).
+    evaluation : reconstruction.Evaluation
+        The scoreboard of every method.
+    figures : dict
+        The report's figures, relative to the output folder.
+    patch : dict
+        Per estimate, its patch-centre errors and spectra.
+    """
+
+    summary: dict[str, Any]
+    evaluation: Evaluation
+    figures: dict[str, Any]
+    patch: dict[str, Any]
+
+
+def _reconstruct(
+    real: RealInputs, out: Path, disable: bool | None
+) -> dict[str, SavedReconstruction]:
     results = {}
     for name, (slug, options) in VARIANTS.items():
         folder = out / "reconstruction" / slug
-        result, summary = reconstruct_and_save(
+        saved = reconstruct_and_save(
             real.synthesis.raw.raw,
             folder,
             name=f"({name})",
@@ -134,12 +163,14 @@ def _reconstruct(real: RealInputs, out: Path, disable: bool | None) -> dict[str,
             **real.reconstruct_options(),
             **options,
         )
-        summary["options"] = options
-        results[name] = {"result": result, "folder": folder, "summary": summary}
+        saved.summary["options"] = options
+        results[name] = saved
     return results
 
 
-def _evaluate(real: RealInputs, recons: dict[str, Any], out: Path) -> dict[str, Any]:
+def _evaluate(
+    real: RealInputs, recons: dict[str, SavedReconstruction], out: Path
+) -> ChartEvaluation:
     from reconstruction import baseline_images, evaluate
 
     synthesis, models, labels = real.synthesis, real.models, real.labels
@@ -149,12 +180,12 @@ def _evaluate(real: RealInputs, recons: dict[str, Any], out: Path) -> dict[str, 
     multispectral = synthesis.multispectral
     patch = {"multispectral": scorer.patch_errors(multispectral.cube, multispectral.wavelengths_nm)}
     for name, r in recons.items():
-        result = r["result"]
+        result = r.result
         patch[name] = scorer.patch_errors(result.spectral, result.wavelengths_nm)
     images, seconds = baseline_images(raw.raw, cfa=raw.cfa, colour_dispersion=models.colour)
     for name, r in recons.items():
-        images[f"spectral: {name}"] = r["result"].raw_colour
-        seconds[f"spectral: {name}"] = r["summary"]["seconds"]
+        images[f"spectral: {name}"] = r.result.raw_colour
+        seconds[f"spectral: {name}"] = r.summary["seconds"]
     evaluation = evaluate(raw.raw, images, cfa=raw.cfa, labels=labels, seconds=seconds)
     folder = out / "evaluation"
     figures = _figures(out, folder, labels, images, evaluation)
@@ -170,10 +201,10 @@ def _evaluate(real: RealInputs, recons: dict[str, Any], out: Path) -> dict[str, 
             }
             for name, e in patch.items()
         },
-        "pixels": {name: scorer.pixel_errors(r["result"]) for name, r in recons.items()},
+        "pixels": {name: scorer.pixel_errors(r.result) for name, r in recons.items()},
         "residual_aberration": evaluation.as_dict(),
     }
-    return {"summary": summary, "evaluation": evaluation, "figures": figures, "patch": patch}
+    return ChartEvaluation(summary, evaluation, figures, patch)
 
 
 def _figures(out, folder, labels, images, evaluation) -> dict[str, Any]:
@@ -189,7 +220,7 @@ def _spectra_figure(folder, out, patch, recons, multispectral, reflectances) -> 
     fine = np.arange(400.0, 701.0, 2.0)
     truth = reflectances.resample(fine).values.T[list(SPECTRA_PATCHES)]
     wavelengths = {"multispectral": multispectral.wavelengths_nm}
-    wavelengths.update({name: r["result"].wavelengths_nm for name, r in recons.items()})
+    wavelengths.update({name: r.result.wavelengths_nm for name, r in recons.items()})
     estimates = {
         name: (np.asarray(w), patch[name]["estimate"][list(SPECTRA_PATCHES)])
         for name, w in wavelengths.items()
@@ -228,23 +259,22 @@ def _report_inputs(report, results, hdr) -> None:
         "from the data (t_ref/t; a factor the data cannot fit keeps the exposure-time ratio, "
         "with a warning below)."
     )
-    rows_hdr = hdr["summary"]
-    exposures = sorted({t for row in rows_hdr.values() for t in row["exposures_s"]})
+    exposures = sorted({t for row in hdr.values() for t in row.exposures_s})
     header = ["filter"] + [f"{t * 1e3:g} ms" for t in exposures] + ["largest difference"]
     rows = []
-    for name, row in sorted(rows_hdr.items(), key=lambda item: float(item[0])):
-        fitted = dict(zip(row["exposures_s"], row["fitted"], strict=True))
+    for name, row in sorted(hdr.items(), key=lambda item: float(item[0])):
+        fitted = dict(zip(row.exposures_s, row.fitted, strict=True))
         rows.append(
             [name]
             + [f"{fitted[t]:.4f}" if t in fitted else "–" for t in exposures]
-            + [f"{row['largest_difference']:+.1%}"]
+            + [f"{row.largest_difference:+.1%}"]
         )
     report.table(header, rows)
-    warnings = [f"{n}: {w}" for n, row in rows_hdr.items() for w in row["warnings"]]
+    warnings = [f"{n}: {w}" for n, row in hdr.items() for w in row.warnings]
     if warnings:
         report.bullets(warnings)
     report.figures(
-        [(row["preview"], f"{n} nm (HDR)") for n, row in rows_hdr.items() if row["preview"]],
+        [(row.preview, f"{n} nm (HDR)") for n, row in hdr.items() if row.preview],
         width_px=220,
     )
 
@@ -327,7 +357,7 @@ def _report_reconstruction(report, results, recons) -> None:
     )  # fmt: skip
     reconstruction_notes(report, results["reconstruction"])
     report.figures(
-        [(f"reconstruction/{r['folder'].name}/preview.png", f"{n}: sRGB")
+        [(f"reconstruction/{r.folder.name}/preview.png", f"{n}: sRGB")
          for n, r in recons.items()],
         width_px=340,
     )  # fmt: skip
@@ -351,7 +381,7 @@ def _report_evaluation(report, results, evaluation) -> None:
             for name, e in results["evaluation"]["patch_centres"].items()
         ],
     )
-    report.figures([(evaluation["figures"]["spectra"], "patch-centre spectra (registered)")])
+    report.figures([(evaluation.figures["spectra"], "patch-centre spectra (registered)")])
     report.heading("Per-pixel spectra against the multispectral image", 3)
     report.paragraph(
         "Spectral RMSE of every pixel against the multispectral image the synthetic raw image "
@@ -373,12 +403,12 @@ def _report_evaluation(report, results, evaluation) -> None:
         "in the patch centres, against an ideal image synthesised from the raw patch centres; "
         "fractions of the raw image's mean."
     )
-    header, rows = evaluation["evaluation"].table()
+    header, rows = evaluation.evaluation.table()
     report.table(header, rows)
-    report.figures([(evaluation["figures"]["edge"], "edge-strip RMSE per channel")])
+    report.figures([(evaluation.figures["edge"], "edge-strip RMSE per channel")])
     report.heading("Images (one display scale for all)", 4)
-    report.figures(evaluation["figures"]["previews"], width_px=300)
-    report.figures([(evaluation["figures"]["crops"], "crops at the chart's corners")])
+    report.figures(evaluation.figures["previews"], width_px=300)
+    report.figures([(evaluation.figures["crops"], "crops at the chart's corners")])
 
 
 def _cell(value: float | None, spec: str = ".4g") -> str:

@@ -6,8 +6,9 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from tqdm import tqdm
@@ -15,6 +16,10 @@ from tqdm import tqdm
 from labkit.io import display_on_one_scale, write_png
 from labkit.plots import plot_channel_errors, plot_crops
 from labkit.report import Report, file_stem
+
+if TYPE_CHECKING:
+    from calibration.dispersion_model import DispersionModel
+    from reconstruction import Reconstruction
 
 
 class Stages:
@@ -48,6 +53,45 @@ def stage_table(report: Report, seconds: dict[str, float]) -> None:
         [[name, f"{value:.1f}"] for name, value in seconds.items()]
         + [["total", f"{sum(seconds.values()):.1f}"]],
     )
+
+
+@dataclass
+class DispersionModels:
+    """A spectral and a colour-channel dispersion model, calibrated and saved by a demo.
+
+    Attributes
+    ----------
+    spectral : DispersionModel
+        The ``to_reference`` spectral model of the reconstruction.
+    colour : DispersionModel
+        The colour-channel model of the synthetic raw image (the warping baselines).
+    summary : dict
+        Bands kept or dropped and why, keypoints, degrees (for the report).
+    """
+
+    spectral: DispersionModel
+    colour: DispersionModel
+    summary: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class SavedReconstruction:
+    """A reconstruction a demo made and saved, and its summary for the report.
+
+    Attributes
+    ----------
+    result : reconstruction.Reconstruction
+        The reconstruction.
+    folder : Path
+        Where it was saved.
+    summary : dict
+        Seconds, bands, weights, patch counts, median ADMM iterations, warnings and the
+        choices labkit made (what the report and ``results.json`` show).
+    """
+
+    result: Reconstruction
+    folder: Path
+    summary: dict[str, Any]
 
 
 def save_models(spectral: Any, colour: Any, folder: Path) -> dict[str, Any]:
@@ -89,12 +133,9 @@ def reconstruct_and_save(
     command: str = "labkit demo",
     disable_progress: bool | None = False,
     **options: Any,
-) -> tuple[Any, dict[str, Any]]:
+) -> SavedReconstruction:
     """Reconstruct `raw` with a progress bar and save it into `folder`
-    (:meth:`reconstruction.Reconstruction.save`).
-
-    Returns the :class:`reconstruction.Reconstruction` and a summary for the report
-    (seconds, bands, weight, patch counts, median ADMM iterations).
+    (:meth:`reconstruction.Reconstruction.save`); return it with its summary.
     """
     from reconstruction import reconstruct
 
@@ -123,7 +164,7 @@ def reconstruct_and_save(
         "warnings": list(result.log.get("warnings", [])),
         "choices": result.log.get("choices", {}),
     }
-    return result, summary
+    return SavedReconstruction(result, folder, summary)
 
 
 def reconstruction_notes(report: Any, summaries: dict[str, dict[str, Any]]) -> None:

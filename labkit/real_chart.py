@@ -13,19 +13,18 @@ same images. The :class:`RealInputs` it returns give the options of a reconstruc
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from functools import cached_property
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from labkit.demo_steps import Stages, save_models
+from labkit.demo_steps import DispersionModels, Stages, save_models
 from labkit.errors import DataError
 from labkit.io import spectral_preview, write_png
 
 if TYPE_CHECKING:
-    from calibration.dispersion_model import DispersionModel
     from calibration.multispectral import Synthesis
     from calibration.sensitivity import ChannelSensitivity
     from labkit.spectra import Spectra
@@ -40,6 +39,67 @@ def real_rig_path() -> Path:
     from importlib import resources
 
     return Path(str(resources.files("labkit") / "rigs" / "example-flea3.yaml"))
+
+
+@dataclass(frozen=True)
+class ImportSummary:
+    """What the import of the frames found.
+
+    Attributes
+    ----------
+    frames, dark_frames : int
+        Filtered frames and dark frames imported.
+    source_dtype : str or None
+        The files' sample type (``uint16``, say).
+    sample_bits : int or None
+        Significant bits per sample.
+    saturation_dn, black_level : float or None
+        The sensor's levels, DN.
+    levels_from : str or None
+        Where the levels came from (the rig, the files' metadata, …).
+    """
+
+    frames: int
+    dark_frames: int
+    source_dtype: str | None
+    sample_bits: int | None
+    saturation_dn: float | None
+    black_level: float | None
+    levels_from: str | None
+
+    def as_dict(self) -> dict[str, Any]:
+        """The fields as a JSON-ready dictionary."""
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class BracketFactors:
+    """One filter's HDR merge: the exposures and their scaling factors (Table 4.1).
+
+    Attributes
+    ----------
+    exposures_s : list of float
+        Exposure times of the bracket, s.
+    nominal, fitted : list of float
+        Each exposure's factor t_ref/t from the exposure times, and as fitted from the data.
+    largest_difference : float
+        The fitted factor's largest relative difference from the nominal one.
+    warnings : list of str
+        The merge's warnings.
+    preview : str or None
+        The HDR preview, relative to the output folder.
+    """
+
+    exposures_s: list[float]
+    nominal: list[float]
+    fitted: list[float]
+    largest_difference: float
+    warnings: list[str]
+    preview: str | None
+
+    def as_dict(self) -> dict[str, Any]:
+        """The fields as a JSON-ready dictionary."""
+        return asdict(self)
 
 
 @dataclass
@@ -63,25 +123,6 @@ class SensorMap:
 
 
 @dataclass
-class DispersionModels:
-    """The dispersion models calibrated from the filtered images.
-
-    Attributes
-    ----------
-    spectral : DispersionModel
-        The ``to_reference`` spectral model of the reconstruction.
-    colour : DispersionModel
-        The colour-channel model of the synthetic raw image (the warping baselines).
-    summary : dict
-        Bands kept or dropped and why, keypoints, degrees (for the report).
-    """
-
-    spectral: DispersionModel
-    colour: DispersionModel
-    summary: dict[str, Any]
-
-
-@dataclass
 class RealInputs:
     """Real captures carried up to reconstruction (stages 1–5 of ``labkit demo --real``),
     and what scores a reconstruction of them (:attr:`scorer`).
@@ -94,8 +135,10 @@ class RealInputs:
         The chart's scene name.
     inputs : dict of str to Path
         ``frames``, ``darks`` and ``labels`` (``labels.png``).
-    session, hdr : dict
-        Import and HDR summaries (``hdr["summary"]``: Table 4.1 per filter).
+    imported : ImportSummary
+        What the import found.
+    hdr : dict of str to BracketFactors
+        The HDR merge of each filter (by filter name): Table 4.1.
     sensor : SensorMap
     synthesis : calibration.multispectral.Synthesis
         The multispectral and synthetic raw images (Algorithm 13).
@@ -108,8 +151,8 @@ class RealInputs:
     rig: Path
     scene: str
     inputs: dict[str, Path]
-    session: dict[str, Any]
-    hdr: dict[str, Any]
+    imported: ImportSummary
+    hdr: dict[str, BracketFactors]
     sensor: SensorMap
     synthesis: Synthesis
     models: DispersionModels
@@ -192,7 +235,7 @@ def prepare_real_inputs(
     rig = load_rig(rig_file)
     out.mkdir(parents=True, exist_ok=True)
     stage = stage if stage is not None else Stages(5, "real inputs", disable=True)
-    session = stage("import", lambda: _import(inputs, rig, out, patterns))
+    imported = stage("import", lambda: _import(inputs, rig, out, patterns))
     hdr = stage("hdr", lambda: _hdr(out))
     scene, images = _filtered(out)
     sensor = stage("sensor map", lambda: _sensor_map(images, rig, out))
@@ -200,7 +243,7 @@ def prepare_real_inputs(
     models = stage("calibrate", lambda: _calibrate(images, synthesis, rig, out))
     labels = read_labels(inputs["labels"], synthesis.raw.raw.shape, what="label image")
     return RealInputs(
-        data, rig_file, scene, inputs, session, hdr, sensor, synthesis, models, labels
+        data, rig_file, scene, inputs, imported, hdr, sensor, synthesis, models, labels
     )
 
 
@@ -216,7 +259,7 @@ def _inputs(data: Path) -> dict[str, Path]:
     return inputs
 
 
-def _import(inputs: dict[str, Path], rig, out: Path, patterns) -> dict[str, Any]:
+def _import(inputs: dict[str, Path], rig, out: Path, patterns) -> ImportSummary:
     import shutil
 
     from labkit.data import REAL_COLORCHECKER_PATTERNS
@@ -233,35 +276,35 @@ def _import(inputs: dict[str, Path], rig, out: Path, patterns) -> dict[str, Any]
     )
     records = list(session.records.values())
     first = records[0]
-    return {
-        "frames": sum(not r["dark"] for r in records),
-        "dark_frames": sum(bool(r["dark"]) for r in records),
-        "source_dtype": first.get("source_dtype"),
-        "sample_bits": first.get("sample_bits"),
-        "saturation_dn": first.get("saturation_dn"),
-        "black_level": first.get("black_level"),
-        "levels_from": first.get("levels_from"),
-    }
+    return ImportSummary(
+        frames=sum(not r["dark"] for r in records),
+        dark_frames=sum(bool(r["dark"]) for r in records),
+        source_dtype=first.get("source_dtype"),
+        sample_bits=first.get("sample_bits"),
+        saturation_dn=first.get("saturation_dn"),
+        black_level=first.get("black_level"),
+        levels_from=first.get("levels_from"),
+    )
 
 
-def _hdr(out: Path) -> dict[str, Any]:
+def _hdr(out: Path) -> dict[str, BracketFactors]:
     from labkit.hdr import run_hdr
 
     run = run_hdr(out / "session", out / "hdr", previews=True)
-    rows = {}
+    rows: dict[str, BracketFactors] = {}
     for output in run.outputs:
         result = output.result
-        rows[output.job.illumination] = {
-            "exposures_s": [e.exposure_s for e in result.exposures],
-            "nominal": [e.nominal for e in result.exposures],
-            "fitted": [e.factor for e in result.exposures],
-            "largest_difference": max(
+        rows[output.job.illumination] = BracketFactors(
+            exposures_s=[e.exposure_s for e in result.exposures],
+            nominal=[e.nominal for e in result.exposures],
+            fitted=[e.factor for e in result.exposures],
+            largest_difference=max(
                 (e.disagreement for e in result.exposures), key=abs, default=0.0
             ),
-            "warnings": list(result.warnings),
-            "preview": str(output.preview.relative_to(out)) if output.preview else None,
-        }
-    return {"summary": rows}
+            warnings=list(result.warnings),
+            preview=str(output.preview.relative_to(out)) if output.preview else None,
+        )
+    return rows
 
 
 def _filtered(out: Path) -> tuple[str, list]:

@@ -35,9 +35,9 @@ print(real_colorchecker())
 # --------------------------------------
 # Stages 1–5 of the real demo; the summaries say what each found.
 real = prepare_real_inputs(out)
-print(real.session)
-for band, row in real.hdr["summary"].items():
-    fitted = ", ".join(f"{f:.4f}" for f in row["fitted"])
+print(real.imported)
+for band, merge in real.hdr.items():
+    fitted = ", ".join(f"{f:.4f}" for f in merge.fitted)
     print(f"{band} nm: exposure factors {fitted}")
 
 # %%
