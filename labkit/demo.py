@@ -140,7 +140,7 @@ def _hdr(out: Path) -> None:
 
 
 def _calibrate(rig: Rig, out: Path) -> dict[str, Any]:
-    from calibration._hdr_inputs import load_scene_hdr
+    from calibration import load_scene_hdr
     from calibration.bands import filter_bands
     from calibration.dispersion_calibration import calibrate_dispersion
     from labkit.sim import SimulatedRig
