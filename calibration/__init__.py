@@ -31,10 +31,11 @@ Optical blur (beyond the thesis, :mod:`calibration.edge_blur`)
     :class:`EdgeBlur`, :func:`edge_blur` — the blur of a raw image, measured on a chart's
     patch edges (what the simulated rig's ``blur_sigma_px`` is chosen from).
 HDR inputs
-    :func:`load_filtered_hdr`, :func:`load_scene_hdr` — images of an HDR folder.
+    :func:`load_filtered_hdr`, :func:`load_scene_hdr` — images of an HDR folder;
+    :func:`source_of` — the file an image was read from.
 """
 
-from calibration._hdr_inputs import load_filtered_hdr, load_scene_hdr
+from calibration._hdr_inputs import load_filtered_hdr, load_scene_hdr, source_of
 from calibration.bands import FilterBand, filter_bands
 from calibration.disks import (
     background_mask,
@@ -104,6 +105,7 @@ __all__ = [
     "plot_keypoint_residuals",
     "plot_model",
     "registration_keypoints",
+    "source_of",
     "synthesize_multispectral",
     "warp",
     "write_synthesis",

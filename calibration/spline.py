@@ -107,9 +107,10 @@ import scipy.linalg
 import scipy.linalg.lapack
 
 from calibration._normalise import Normaliser
+from calibration._spline_kernel import PHI_SCALE, psi
 from calibration.dispersion_model import SPECTRAL, CalibratedRegion, DispersionModel
 from calibration.keypoints import DispersionKeypoints
-from calibration.spline_field import _PHI_SCALE, KERNELS, SplineField, _psi
+from calibration.spline_field import KERNELS, SplineField
 from labkit.blas_threads import fixed_blas_threads
 from labkit.errors import ConfigError, DataError
 
@@ -237,7 +238,7 @@ def _decompose(u: np.ndarray, d: np.ndarray, label: str) -> _Decomposition:
             + " do not determine an affine function (e.g. each band's keypoints lie on "
             "one line); keypoints must cover a 2-D region of the image in several bands"
         )
-    kernel = _PHI_SCALE[dim] * _psi(u, u, dim)
+    kernel = PHI_SCALE[dim] * psi(u, u, dim)
     projected = q.apply(q.apply(kernel, transpose=True), side="R")[p:, p:]
     projected = 0.5 * (projected + projected.T)
     eigenvalues, eigenvectors = scipy.linalg.eigh(

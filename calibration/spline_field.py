@@ -14,21 +14,18 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
-from scipy.spatial.distance import cdist
 
 from calibration._model_files import float_array
 from calibration._normalise import Normaliser
+from calibration._spline_kernel import PHI_SCALE, psi
 from labkit.errors import ConfigError, DataError
 
 #: Kernel names written to model files, by input dimension.
 KERNELS = {2: "r^2 log r", 3: "-r"}
-#: φ = _PHI_SCALE · ψ, where ψ is what :func:`_psi` computes cheaply (r² log r² in 2-D, r in 3-D).
-_PHI_SCALE = {2: 0.5, 3: -1.0}
 #: Points × centres per evaluation block (1 MiB of float64 per buffer).
 BLOCK_ELEMENTS = 1 << 17
 #: Threads evaluating blocks.
 WORKERS = max(1, min(4, os.cpu_count() or 1))
-_TINY = 1e-300
 
 _FIELD_KEYS = (
     "kind",
@@ -40,32 +37,6 @@ _FIELD_KEYS = (
     "weights",
     "affine",
 )
-
-
-def _psi(
-    a: np.ndarray,
-    b: np.ndarray,
-    dimension: int,
-    buffers: tuple[np.ndarray, np.ndarray] | None = None,
-) -> np.ndarray:
-    """ψ(|a_i − b_k|) (len(a), len(b)): r² log r² in 2-D, r in 3-D (φ = _PHI_SCALE ψ).
-
-    `buffers`, two C-contiguous float64 arrays of shape (len(a), len(b)), are reused
-    instead of allocating: allocating megabytes per block costs more than computing them
-    (fresh pages are faulted in and zeroed by the kernel).
-    """
-    if buffers is None:
-        r2 = cdist(a, b, "sqeuclidean")
-        out = np.empty_like(r2) if dimension == 2 else r2
-    else:
-        r2, out = buffers
-        cdist(a, b, "sqeuclidean", out=r2)
-    if dimension == 3:
-        return np.sqrt(r2, out=r2)
-    np.maximum(r2, _TINY, out=r2)  # r = 0 → r² log r² = 1e-300 · (−690.8) ≈ 0, not NaN
-    np.log(r2, out=out)
-    out *= r2
-    return out
 
 
 @dataclass(frozen=True)
@@ -137,7 +108,7 @@ class SplineField:
         u = np.ascontiguousarray(u)
         n, m, dim = len(u), len(self.centres), self.dimension
         out = u @ self.affine[1:] + self.affine[0]
-        weights = np.ascontiguousarray(_PHI_SCALE[dim] * self.weights.T)
+        weights = np.ascontiguousarray(PHI_SCALE[dim] * self.weights.T)
         block = min(n, max(16, BLOCK_ELEMENTS // m))
         workers = max(1, min(WORKERS, -(-n // block)))
 
@@ -147,10 +118,10 @@ class SplineField:
             for start in range(first * block, n, workers * block):
                 stop = min(start + block, n)
                 views = (buffers[0][: stop - start], buffers[1][: stop - start])
-                psi = _psi(u[start:stop], self.centres, dim, views)
+                kernel = psi(u[start:stop], self.centres, dim, views)
                 # einsum's own loop, not BLAS: OpenBLAS serialises (and spins on) calls
                 # made from several threads at once
-                out[start:stop] += np.einsum("ij,kj->ik", psi, weights)
+                out[start:stop] += np.einsum("ij,kj->ik", kernel, weights)
 
         if workers == 1:
             work(0)

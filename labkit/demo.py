@@ -188,7 +188,7 @@ def _hdr(out: Path) -> None:
 
 
 def _calibrate(rig: Rig, out: Path) -> DispersionModels:
-    from calibration._hdr_inputs import load_scene_hdr
+    from calibration import load_scene_hdr
     from calibration.bands import filter_bands
     from calibration.dispersion_calibration import calibrate_dispersion
     from labkit.sim import SimulatedRig

@@ -44,7 +44,7 @@ ENTRY_POINTS = [
     ("calibration.disks", "fit_disks"),
     ("calibration.disks", "disk_keypoints"),
     ("calibration.disks", "channel_disk_keypoints"),
-    ("calibration.disks.fit", "_refine_chunk"),  # runs in the process pool's workers
+    ("calibration.disks._refine", "refine_chunk"),  # runs in the process pool's workers
     ("calibration.registration", "patch_shifts"),
     ("calibration.registration", "registration_keypoints"),
     ("calibration.registration", "channel_registration_keypoints"),

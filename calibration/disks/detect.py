@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from calibration.disks._raw import channel_noise, checked_raw
 from labkit.blas_threads import fixed_blas_threads
 from labkit.cfa import channel_index, check_layout
 from labkit.errors import DataError
@@ -27,8 +28,10 @@ _AREA_TOLERANCE = 0.4
 _MIN_DISKS = 4
 #: Least share of the dark area (away from the border) that disk-like regions must cover.
 _MIN_DISK_SHARE = 0.5
-#: Default edge width assumed around detected disks by :func:`background_mask`, px.
-_EDGE_WIDTH_PX = 1.5
+#: Width of a disk's edge as it appears in the image (pixel footprint included), px, where
+#: it is not measured: the margin :func:`background_mask` keeps beyond detected disks, and
+#: the width the fits of disk keypoints start from.
+EDGE_WIDTH_PX = 1.5
 
 
 @dataclass(frozen=True)
@@ -63,49 +66,6 @@ class DiskCandidates:
         return int(self.centres.shape[0])
 
 
-def _checked_raw(raw: np.ndarray, name: str) -> np.ndarray:
-    """`raw` as a finite 2-D float array, or DataError naming the image."""
-    array = np.asarray(raw)
-    if array.ndim != 2 or min(array.shape) < 8:
-        raise DataError(
-            f"{name}: a raw mosaic must be a 2-D array of at least 8×8 pixels, "
-            f"got shape {array.shape}"
-        )
-    if array.dtype.kind not in "fiu":
-        raise DataError(f"{name}: raw pixels must be numbers, got dtype {array.dtype}")
-    if array.dtype.kind != "f":
-        array = array.astype(np.float32)
-    bad = np.size(array) - int(np.count_nonzero(np.isfinite(array)))
-    if bad:
-        raise DataError(
-            f"{name}: {bad} raw pixels are NaN or Inf; replace or mask them (e.g. re-merge "
-            "the HDR image) before locating disks"
-        )
-    return array
-
-
-def _channel_noise(raw: np.ndarray, index: np.ndarray) -> np.ndarray:
-    """Robust pixel-noise sigma of each colour channel, (3,), raw units.
-
-    From differences of horizontally adjacent pixels of the same channel (2 px apart):
-    1.4826 × median |difference| / √2, on at most about 200 000 differences per channel.
-    """
-    diffs: list[list[np.ndarray]] = [[], [], []]
-    for i in range(2):
-        for j in range(2):
-            plane = raw[i::2, j::2]
-            if plane.shape[1] < 2:
-                continue
-            step = max(1, int(plane.size // 100_000))
-            diffs[int(index[i, j])].append(np.diff(plane[::step], axis=1).ravel())
-    sigma = np.zeros(3)
-    for channel, parts in enumerate(diffs):
-        if parts:
-            d = np.abs(np.concatenate(parts))
-            sigma[channel] = 1.4826 * float(np.median(d)) / np.sqrt(2.0)
-    return sigma
-
-
 def _otsu_split(values: np.ndarray, noise: float) -> tuple[float, bool]:
     """Otsu threshold of `values` and whether they are bimodal enough to use."""
     from skimage.filters import threshold_otsu
@@ -135,7 +95,7 @@ def _dark_mask(raw: np.ndarray, cfa: str) -> tuple[np.ndarray, np.ndarray]:
     from skimage.morphology import closing, disk, opening
 
     index = channel_index(cfa, raw.shape)
-    noise = _channel_noise(raw, index)
+    noise = channel_noise(raw, index)
     thresholds = np.zeros(3)
     usable = np.zeros(3, dtype=bool)
     for channel in range(3):
@@ -209,7 +169,7 @@ def detect_disks(
     from skimage.measure import label, regionprops_table
 
     layout = check_layout(cfa)
-    raw = _checked_raw(raw, name)
+    raw = checked_raw(raw, name)
     dark, usable = _dark_mask(raw, layout)
     if not usable.any():
         raise _no_disks(name, "no colour channel separates into dark and bright pixels")
@@ -325,7 +285,7 @@ def background_mask(
         vignetting to the whole image instead).
     """
     layout = check_layout(cfa)
-    raw = _checked_raw(raw, "image")
+    raw = checked_raw(raw, "image")
     if not margin_px >= 0:
         raise DataError(f"margin_px must be ≥ 0, got {margin_px}")
     if candidates is None:
@@ -338,4 +298,4 @@ def background_mask(
     dark, _ = _dark_mask(raw, layout)
     dark |= candidates.labels > 0
     distance = ndimage.distance_transform_edt(~dark)
-    return distance > margin_px + _EDGE_WIDTH_PX
+    return distance > margin_px + EDGE_WIDTH_PX

@@ -9,11 +9,15 @@ from concurrent.futures import Executor
 from typing import Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from calibration._hdr_inputs import source_of
-from calibration.disks.detect import _EDGE_WIDTH_PX, _checked_raw, detect_disks
-from calibration.disks.fit import DiskFit, _finish, _maybe_pool, _Pending, _start, _workers
-from calibration.disks.pair import _displacement_outliers, _median_spacing, pair_mutual_nearest
+from calibration.disks._outliers import displacement_outliers
+from calibration.disks._pool import Pending, finish, maybe_pool, start, worker_count
+from calibration.disks._raw import checked_raw
+from calibration.disks.detect import EDGE_WIDTH_PX, detect_disks
+from calibration.disks.fit import DiskFit
+from calibration.disks.pair import pair_mutual_nearest
 from calibration.keypoints import DispersionKeypoints
 from labkit.blas_threads import fixed_blas_threads
 from labkit.cfa import check_layout
@@ -54,12 +58,12 @@ def _check_images(images: Sequence[RawImage]) -> None:
 
 def _start_image(
     image: RawImage, where: str, pool: Executor | None, workers: int, *, per_channel: bool = False
-) -> _Pending:
+) -> Pending:
     """Detect the disks of one image and start fitting them; errors name it as `where`."""
-    raw = _checked_raw(image.raw, where)
+    raw = checked_raw(image.raw, where)
     layout = check_layout(image.cfa)
     candidates = detect_disks(raw, cfa=layout, name=where)
-    return _start(raw, layout, candidates, per_channel, where, _EDGE_WIDTH_PX, pool, workers)
+    return start(raw, layout, candidates, per_channel, where, EDGE_WIDTH_PX, pool, workers)
 
 
 @fixed_blas_threads
@@ -105,7 +109,7 @@ def disk_keypoints(
         than 10 disks with the reference.
     """
     _check_images(images)
-    n_workers = _workers(workers)
+    n_workers = worker_count(workers)
     bands = [_band_wavelength(image, wavelengths) for image in images]
     order = np.argsort(bands, kind="stable")
     images = [images[i] for i in order]
@@ -114,13 +118,13 @@ def disk_keypoints(
     if max_shift_px is not None and not max_shift_px > 0:
         raise DataError(f"max_shift_px must be > 0 px, got {max_shift_px}")
     shape = images[0].raw.shape
-    with _maybe_pool(n_workers) as pool:
+    with maybe_pool(n_workers) as pool:
         # detection of the next image overlaps the fits of the previous ones
         pending = [
             _start_image(image, f"band {w:g} nm ({source_of(image)})", pool, n_workers)
             for image, w in zip(images, bands, strict=True)
         ]
-        fits = [_finish(p) for p in pending]
+        fits = [DiskFit(**finish(p)) for p in pending]
     ref_fit = fits[ref_i]
     ref_xy = ref_fit.centres
     limit = 0.25 * _median_spacing(ref_xy) if max_shift_px is None else float(max_shift_px)
@@ -194,7 +198,7 @@ def _paired(
     ref_xy = ref_fit.centres
     ri, bi = pair_mutual_nearest(ref_xy, fit.centres, max_distance_px=limit)
     d = fit.centres[bi] - ref_xy[ri]
-    outliers = _displacement_outliers(ref_xy[ri], d)
+    outliers = displacement_outliers(ref_xy[ri], d)
     keep = ~outliers
     info.update(paired=int(ri.size), outliers=int(outliers.sum()))
     if int(keep.sum()) < _MIN_PAIRED:
@@ -233,15 +237,15 @@ def channel_disk_keypoints(image: RawImage, *, workers: int | None = None) -> Di
         The image shows no disks, or fewer than 10 disks survive in a channel.
     """
     where = f"{image.illumination} image ({source_of(image)})"
-    n_workers = _workers(workers)
-    with _maybe_pool(n_workers) as pool:
-        fit = _finish(_start_image(image, where, pool, n_workers, per_channel=True))
+    n_workers = worker_count(workers)
+    with maybe_pool(n_workers) as pool:
+        fit = DiskFit(**finish(_start_image(image, where, pool, n_workers, per_channel=True)))
     green = fit.channel_centres[:, 1]
     parts = []
     channels_meta: dict[str, dict[str, int]] = {}
     for c, label in ((0, "R"), (2, "B")):
         d = fit.channel_centres[:, c] - green
-        outliers = _displacement_outliers(green, d)
+        outliers = displacement_outliers(green, d)
         keep = ~outliers
         channels_meta[label] = {"paired": len(fit), "outliers": int(outliers.sum())}
         if int(keep.sum()) < _MIN_PAIRED:
@@ -271,3 +275,11 @@ def channel_disk_keypoints(image: RawImage, *, workers: int | None = None) -> Di
             "channels": channels_meta,
         },
     )
+
+
+def _median_spacing(xy: np.ndarray) -> float:
+    """Median distance from each point to its nearest neighbour, px."""
+    if len(xy) < 2:
+        return float("inf")
+    dist, _ = cKDTree(xy).query(xy, k=2)
+    return float(np.median(dist[:, 1]))

@@ -6,8 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 
-#: Geometry parameters of the disk model before the lightnesses.
-_N_GEOMETRY = 8
+#: Parameters of the disk model before the lightnesses (the geometry: centre offset, quadratic
+#: form, edge ramp and illumination gradient).
+N_GEOMETRY = 8
 
 
 #: Sign patterns of the 8 corner terms of the CDF of a sum of three uniforms.
@@ -20,10 +21,11 @@ _SQUARE_WEIGHTS = np.column_stack(
 )
 #: Smallest footprint widths (px): keeps the CDF formula well conditioned.
 _MIN_FOOTPRINT = 0.02
-_MIN_EDGE = 0.02
+#: Least width of the model's edge ramp, px: w = √(MIN_EDGE_WIDTH_PX² + max(v, 0)).
+MIN_EDGE_WIDTH_PX = 0.02
 
 
-class _DiskModel:
+class DiskModel:
     """Synthetic disk integrated over pixel areas, with an analytic Jacobian.
 
     Parameters (vector p): ux, uy (centre offset from the initial centre, px), qa, qb, qc
@@ -36,10 +38,14 @@ class _DiskModel:
     Across the edge, at signed distance s, the scene falls linearly from exterior to
     interior over the width w (the thesis' linear edge). A pixel integrates the scene
     over its unit square; for a locally straight edge with unit normal (nx, ny) that is
-    a convolution with uniform kernels of widths |nx| and |ny|, so the fraction of the
-    pixel inside the disk is 1 − F(s), with F the CDF of the sum of three centred
-    uniform variables of widths |nx|, |ny| and w (a piecewise cubic in s). The radial
-    direction stands in for the normal (they agree for circles).
+    a convolution with uniform kernels of widths ``|nx|`` and ``|ny|``, so the fraction of
+    the pixel inside the disk is 1 − F(s), with F the CDF of the sum of three centred
+    uniform variables of widths ``|nx|``, ``|ny|`` and w (a piecewise cubic in s). The
+    radial direction stands in for the normal (they agree for circles).
+
+    The pixels are given by their positions `x`, `y` (n,) relative to the initial centre,
+    px, and their lightness groups `group` (n,) in 0…m−1; `r0` is the initial mean radius,
+    px, and `weight` (n,), if given, multiplies the model (and the Jacobian).
     """
 
     def __init__(
@@ -67,9 +73,9 @@ class _DiskModel:
         if self._p is not None and np.array_equal(p, self._p):
             return
         m = self.m
-        ux, uy, qa, qb, qc, w2, gx, gy = p[:_N_GEOMETRY]
-        inner = p[_N_GEOMETRY : _N_GEOMETRY + m]
-        outer = p[_N_GEOMETRY + m :]
+        ux, uy, qa, qb, qc, w2, gx, gy = p[:N_GEOMETRY]
+        inner = p[N_GEOMETRY : N_GEOMETRY + m]
+        outer = p[N_GEOMETRY + m :]
         dx = self.x - ux
         dy = self.y - uy
         r = np.maximum(np.hypot(dx, dy), 1e-9)
@@ -81,7 +87,7 @@ class _DiskModel:
         s = r - big_r
         a1 = np.maximum(np.abs(ex), _MIN_FOOTPRINT)
         a2 = np.maximum(np.abs(ey), _MIN_FOOTPRINT)
-        w = float(np.sqrt(_MIN_EDGE**2 + max(w2, 0.0)))
+        w = float(np.sqrt(MIN_EDGE_WIDTH_PX**2 + max(w2, 0.0)))
         half = 0.5 * (a1 + a2 + w)
         band = np.abs(s) < half
         z = s[:, None] + 0.5 * (a1[:, None] * _SIGNS[:, 0] + a2[:, None] * _SIGNS[:, 1])
@@ -107,14 +113,16 @@ class _DiskModel:
         self.model = model if self.weight is None else model * self.weight
 
     def residuals(self, p: np.ndarray, values: np.ndarray) -> np.ndarray:
+        """The model at parameters `p` (times the pixel weights, if any) minus `values` (n,)."""
         self._evaluate(p)
         return self.model - values
 
     def jacobian(self, p: np.ndarray, values: np.ndarray) -> np.ndarray:
+        """The Jacobian (n, N_GEOMETRY + 2 m) of :meth:`residuals` at parameters `p`."""
         self._evaluate(p)
         r, ex, ey, qx, qy, big_r, a1, a2, w, band, z2, inv, cdf, h, contrast, base = self._cache
         gain = self._gain
-        jac = np.empty((r.size, _N_GEOMETRY + 2 * self.m))
+        jac = np.empty((r.size, N_GEOMETRY + 2 * self.m))
         sums = (z2 @ _SQUARE_WEIGHTS) * inv[:, None]  # ∂F/∂s and Σ σ ε_i z² / (4 a1 a2 w)
         # f = gain (e + contrast (1 − F)); dF/d(param) enters with −gain·contrast
         df = np.where(band, -gain * contrast, 0.0)
@@ -140,8 +148,8 @@ class _DiskModel:
         jac[:, 6] = base * self.xr
         jac[:, 7] = base * self.yr
         m = self.m
-        jac[:, _N_GEOMETRY : _N_GEOMETRY + m] = (gain * h)[:, None] * self.onehot
-        jac[:, _N_GEOMETRY + m :] = (gain * (1.0 - h))[:, None] * self.onehot
+        jac[:, N_GEOMETRY : N_GEOMETRY + m] = (gain * h)[:, None] * self.onehot
+        jac[:, N_GEOMETRY + m :] = (gain * (1.0 - h))[:, None] * self.onehot
         if self.weight is not None:
             jac *= self.weight[:, None]
         return jac

@@ -12,13 +12,8 @@ import numpy as np
 from calibration._hdr_inputs import check_consistent, source_of
 from calibration.keypoints import DispersionKeypoints
 from calibration.multispectral import green_bilinear
-from calibration.registration.shifts import (
-    MAX_ERROR,
-    MIN_TEXTURE,
-    PatchShifts,
-    _patch_grid,
-    patch_shifts,
-)
+from calibration.registration._grid import patch_grid
+from calibration.registration.shifts import MAX_ERROR, MIN_TEXTURE, PatchShifts, patch_shifts
 from labkit.blas_threads import fixed_blas_threads
 from labkit.errors import DataError
 from labkit.io.exr import RawImage
@@ -147,7 +142,7 @@ def _reference_keypoints(
     shape: tuple[int, int], reference_wl: float, source: str, patch_px: int, step_px: int
 ) -> tuple[DispersionKeypoints, dict[str, Any]]:
     """The reference band's own patch centres (zero displacement) and its summary."""
-    r0, c0 = _patch_grid(shape, patch_px, step_px)
+    r0, c0 = patch_grid(shape, patch_px, step_px)
     half = (patch_px - 1) / 2.0
     n_ref = r0.size
     keypoints = DispersionKeypoints(

@@ -10,6 +10,7 @@ import numpy as np
 from scipy import fft as sp_fft
 from scipy import ndimage
 
+from calibration.registration._grid import patch_grid
 from labkit.blas_threads import fixed_blas_threads
 from labkit.errors import DataError
 
@@ -134,7 +135,7 @@ def patch_shifts(
     reference = np.asarray(reference, dtype=np.float64)
     moving = np.asarray(moving, dtype=np.float64)
     _check_pair(reference, moving, patch_px, step_px, upsample, max_shift_px, normalization)
-    r0, c0 = _patch_grid(reference.shape, patch_px, step_px)
+    r0, c0 = patch_grid(reference.shape, patch_px, step_px)
     n = r0.size
     weight = _spectral_weight(patch_px, lowpass)
     taper = _hann(patch_px) if window else np.ones((patch_px, patch_px))
@@ -232,18 +233,6 @@ def _check_pair(
     for name, image in (("reference", reference), ("moving", moving)):
         if not np.all(np.isfinite(image)):
             raise DataError(f"the {name} image holds NaN or Inf pixels")
-
-
-def _patch_grid(shape: tuple[int, int], patch_px: int, step_px: int) -> tuple[np.ndarray, ...]:
-    """Top-left corners (rows, cols) of the patch grid, centred in the image."""
-
-    def axis(size: int) -> np.ndarray:
-        count = (size - patch_px) // step_px + 1
-        first = (size - patch_px - (count - 1) * step_px) // 2
-        return first + step_px * np.arange(count)
-
-    rows, cols = np.meshgrid(axis(shape[0]), axis(shape[1]), indexing="ij")
-    return rows.ravel(), cols.ravel()
 
 
 def _hann(size: int) -> np.ndarray:

@@ -230,7 +230,7 @@ def _percent(value: float) -> str:
 
 
 def _vignetting(args: argparse.Namespace) -> int:
-    from calibration._hdr_inputs import load_scene_hdr, source_of
+    from calibration import load_scene_hdr, source_of
     from calibration.disks import background_mask
     from calibration.plots import plot_vignetting
     from calibration.vignetting import fit_vignetting
@@ -302,7 +302,7 @@ def _check_against_chart(target: Path, images: list, reference: str) -> None:
 def _dispersion(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from calibration._hdr_inputs import load_scene_hdr
+    from calibration import load_scene_hdr
     from calibration.dispersion_calibration import (
         MIN_PURITY,
         band_table,

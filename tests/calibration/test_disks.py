@@ -19,7 +19,7 @@ from calibration.disks import (
     fit_disks,
     pair_mutual_nearest,
 )
-from calibration.disks.pair import _displacement_outliers
+from calibration.disks._outliers import displacement_outliers
 from labkit.cfa import mosaic
 from labkit.errors import DataError
 from labkit.io.exr import RawImage
@@ -370,7 +370,7 @@ def test_outliers_of_a_steep_field_are_found_at_the_edges_too() -> None:
     d += np.random.default_rng(0).normal(0.0, 0.01, d.shape)
     planted = [0, 40, 77]  # a corner, an inner and an edge keypoint
     d[planted] += [0.8, -0.5]
-    assert np.flatnonzero(_displacement_outliers(xy, d)).tolist() == planted
+    assert np.flatnonzero(displacement_outliers(xy, d)).tolist() == planted
 
 
 def test_displaced_disks_are_rejected_as_outliers(

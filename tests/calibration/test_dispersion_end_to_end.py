@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from _helpers import write_rig
 
-from calibration._hdr_inputs import load_scene_hdr
+from calibration import load_scene_hdr
 from calibration.bands import filter_bands
 from calibration.dispersion_calibration import MIN_PURITY, calibrate_dispersion
 from labkit.bench.calibrate import model_error

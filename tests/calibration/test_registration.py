@@ -25,7 +25,7 @@ from calibration.registration import (
     patch_shifts,
     registration_keypoints,
 )
-from calibration.registration.shifts import _patch_grid
+from calibration.registration._grid import patch_grid
 from labkit.cfa import mosaic
 from labkit.errors import DataError
 from labkit.io.exr import RawImage
@@ -135,7 +135,7 @@ def test_planted_uniform_shift_is_recovered_with_its_sign(
     own = keypoints.for_band(600.0)
     assert len(own) == N_PATCHES
     assert np.all(own.dx == 0) and np.all(own.dy == 0)
-    _, c0 = _patch_grid(SHAPE, 64, 32)
+    _, c0 = patch_grid(SHAPE, 64, 32)
     np.testing.assert_array_equal(np.sort(own.x), np.sort(c0 + 31.5))
     meta = keypoints.meta["bands"]
     assert meta["550.0"]["file"] == f"{kind}/550.exr"
@@ -152,7 +152,7 @@ def test_plain_settings_reproduce_scikit_image(planted_pairs: dict) -> None:
     ref = green_bilinear(reference.raw, LAYOUT)
     mov = green_bilinear(band.raw, LAYOUT)
     plain = patch_shifts(ref, mov, window=False, lowpass=None, normalization="phase", iterations=0)
-    r0, c0 = _patch_grid(SHAPE, 64, 32)
+    r0, c0 = patch_grid(SHAPE, 64, 32)
     for i in range(0, N_PATCHES, 7):
         a = ref[r0[i] : r0[i] + 64, c0[i] : c0[i] + 64]
         b = mov[r0[i] : r0[i] + 64, c0[i] : c0[i] + 64]
