@@ -47,21 +47,21 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from labkit.devices._gentl import (
+    BACKEND,
+    Producer,
+    acquire_producer,
+    check_cti,
+    close_device,
+    first_line,
+    format_devices,
+    genicam_errors,
+    info_text,
+    release_producer,
+)
 from labkit.devices.camera import CameraIdentity
 from labkit.devices.genicam_features import GenICamFeatures
-from labkit.devices.gentl_producers import (
-    BACKEND,
-    _acquire_producer,
-    _check_cti,
-    _close_device,
-    _first_line,
-    _format_devices,
-    _genicam_errors,
-    _info_text,
-    _Producer,
-    _release_producer,
-    list_devices,
-)
+from labkit.devices.gentl_producers import list_devices
 from labkit.errors import ConfigError, DeviceError
 from labkit.frame import Frame
 
@@ -132,7 +132,7 @@ class GenICamCamera(GenICamFeatures):
             )
         self.timeout_s = float(timeout_s)
         self.retries = int(retries)
-        self.cti = _check_cti(cti)
+        self.cti = check_cti(cti)
         self._closed = True
         self._stats = dict.fromkeys(
             ("acquisitions_started", "buffers_fetched", "frames_delivered", "buffers_failed",
@@ -140,24 +140,24 @@ class GenICamCamera(GenICamFeatures):
         )  # fmt: skip
         self._host_frame_id = 0
         self._acquisition_last_id: int | None = None
-        producer = _acquire_producer(self.cti)
+        producer = acquire_producer(self.cti)
         try:
             index = self._match(producer, device_id)
             self.device_id = producer.devices[index].device_id
             self._info = producer.devices[index]
-            self._version = _info_text(producer.harvester.device_info_list[index], "version")
+            self._version = info_text(producer.harvester.device_info_list[index], "version")
             try:
                 self._ia = producer.harvester.create(index)
             except Exception as exc:
                 raise DeviceError(
-                    f"camera {self.device_id} ({self.cti}) cannot be opened ({_first_line(exc)}); "
+                    f"camera {self.device_id} ({self.cti}) cannot be opened ({first_line(exc)}); "
                     "close other programs (or GenICamCamera objects) using it"
                 ) from None
         except BaseException:
-            _release_producer(self.cti)
+            release_producer(self.cti)
             raise
         self._closed = False
-        self._finalizer = weakref.finalize(self, _close_device, self._ia, self.cti)
+        self._finalizer = weakref.finalize(self, close_device, self._ia, self.cti)
         self._nodes = self._ia.remote_device.node_map
         if pixel_format is not None:
             try:
@@ -166,7 +166,7 @@ class GenICamCamera(GenICamFeatures):
                 self.close()
                 raise
 
-    def _match(self, producer: _Producer, device_id: str | None) -> int:
+    def _match(self, producer: Producer, device_id: str | None) -> int:
         devices = producer.devices
         where = f"GenTL producer {producer.cti}"
         if not devices:
@@ -183,10 +183,10 @@ class GenICamCamera(GenICamFeatures):
             if len(hits) > 1:
                 raise DeviceError(
                     f"{where}: {device_id!r} matches the {key} of {len(hits)} cameras "
-                    f"({_format_devices([devices[i] for i in hits])}); give a device id instead"
+                    f"({format_devices([devices[i] for i in hits])}); give a device id instead"
                 )
         raise DeviceError(
-            f"{where} has no camera {device_id!r}; devices found: {_format_devices(devices)}; "
+            f"{where} has no camera {device_id!r}; devices found: {format_devices(devices)}; "
             "set the rig's camera device to one of these ids or serial numbers"
         )
 
@@ -251,8 +251,8 @@ class GenICamCamera(GenICamFeatures):
     def _device_call(self, action: str) -> Iterator[None]:
         try:
             yield
-        except _genicam_errors() as exc:
-            raise DeviceError(f"{self._where}: {action} failed ({_first_line(exc)})") from None
+        except genicam_errors() as exc:
+            raise DeviceError(f"{self._where}: {action} failed ({first_line(exc)})") from None
 
     @property
     def identity(self) -> CameraIdentity:
@@ -323,7 +323,7 @@ class GenICamCamera(GenICamFeatures):
             self._ia.start()
         except Exception as exc:
             raise DeviceError(
-                f"{self._where}: starting the acquisition failed ({_first_line(exc)}); check "
+                f"{self._where}: starting the acquisition failed ({first_line(exc)}); check "
                 "the connection and that no other program streams from the camera"
             ) from None
         self._stats["acquisitions_started"] += 1

@@ -35,8 +35,8 @@ from typing import Literal
 
 from labkit.errors import ConfigError, DeviceError
 from labkit.sim.serial_protocol import (
-    _CR,
-    _LF,
+    CR,
+    LF,
     ProtocolHandler,
     TranscriptEntry,
     Wait,
@@ -356,7 +356,7 @@ class PtySerialSimulator:
             body = reply[: -len(suffix)]
         else:
             body, suffix = reply, b""
-        forbidden = {_CR, _LF, *suffix}
+        forbidden = {CR, LF, *suffix}
         if not body:
             body = b"\x00"
         out = bytearray()

@@ -20,6 +20,8 @@ from labkit.errors import ConfigError
 
 __all__ = [
     "BASE_FAULT_KINDS",
+    "CR",
+    "LF",
     "FaultInjector",
     "Framer",
     "LineFramer",
@@ -32,8 +34,11 @@ __all__ = [
 #: Fault kinds every simulator supports; handlers add their own (``"stuck"`` for the FW102C).
 BASE_FAULT_KINDS: frozenset[str] = frozenset({"no_reply", "garbled"})
 
-_CR = 0x0D
-_LF = 0x0A
+#: Carriage return: ends a command of a line-based protocol (:class:`LineFramer`); a
+#: garbled reply never contains it.
+CR = 0x0D
+#: Line feed: ends a command too (CR LF is one end); a garbled reply never contains it.
+LF = 0x0A
 
 
 @dataclass(frozen=True)
@@ -119,11 +124,11 @@ class LineFramer:
         """
         commands: list[bytes] = []
         for byte in data:
-            if byte == _LF and self._after_cr:
+            if byte == LF and self._after_cr:
                 self._after_cr = False
                 continue
-            if byte in (_CR, _LF):
-                self._after_cr = byte == _CR
+            if byte in (CR, LF):
+                self._after_cr = byte == CR
                 commands.append(bytes(self._buffer))
                 self._buffer.clear()
                 continue

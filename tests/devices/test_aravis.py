@@ -20,8 +20,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from labkit.devices import aravis
-from labkit.devices.aravis import AravisCamera, list_devices, unwrap_frame_id
+from labkit.devices import _aravis_gi
+from labkit.devices._aravis_stream import unwrap_frame_id
+from labkit.devices.aravis import AravisCamera, list_devices
 from labkit.devices.camera import Bounds, Camera, CameraIdentity
 from labkit.errors import DeviceError
 
@@ -29,8 +30,9 @@ from labkit.errors import DeviceError
 def _skip_reason() -> str | None:
     if shutil.which("arv-fake-gv-camera-0.8") is None:
         return "arv-fake-gv-camera-0.8 not found (install the Debian package aravis-tools)"
-    if aravis.Aravis is None:
-        return f"Aravis 0.8 typelib unavailable ({aravis._IMPORT_ERROR}); install gir1.2-aravis-0.8"
+    if _aravis_gi.Aravis is None:
+        error = _aravis_gi.IMPORT_ERROR
+        return f"Aravis 0.8 typelib unavailable ({error}); install gir1.2-aravis-0.8"
     return None
 
 
@@ -57,7 +59,7 @@ def test_unwrap_frame_id_across_the_16_bit_wrap() -> None:
 
 
 def test_missing_aravis_is_a_clear_device_error(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(aravis, "_IMPORT_ERROR", ValueError("Namespace Aravis not available"))
+    monkeypatch.setattr(_aravis_gi, "IMPORT_ERROR", ValueError("Namespace Aravis not available"))
     pattern = r"install the system packages gir1\.2-aravis-0\.8.*labkit\[gige\]"
     with pytest.raises(DeviceError, match=pattern):
         list_devices()
