@@ -228,9 +228,11 @@ def _reconstruct(rig: Rig, out: Path, models: DispersionModels) -> dict[str, Sce
             {"correction": "warp"},
         ),
     ]
+    hdr = out / "hdr"
+    images = {scene: read_raw_exr(hdr / scene / "unfiltered.exr") for scene in RECONSTRUCTED}
     results = {}
     for scene, name, slug, variant in jobs:
-        image = read_raw_exr(out / "hdr" / scene / "unfiltered.exr")
+        image = images[scene]
         saved = reconstruct_and_save(
             image.raw,
             out / "reconstruction" / slug,
@@ -259,9 +261,10 @@ def _evaluate(
     evaluations = {}
     results["evaluation"] = {}
     for scene in RECONSTRUCTED:
-        ours = {n: r.saved for n, r in recons.items() if r.scene == scene}
-        first = next(r for r in recons.values() if r.scene == scene)
+        of_scene = {n: r for n, r in recons.items() if r.scene == scene}
+        first = next(iter(of_scene.values()))
         raw, cfa = first.raw, first.cfa
+        ours = {n: r.saved for n, r in of_scene.items()}
         images, seconds = baseline_images(raw, cfa=cfa, colour_dispersion=models.colour)
         for name, r in ours.items():
             images[f"spectral: {name}"] = r.result.raw_colour

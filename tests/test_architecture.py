@@ -61,6 +61,15 @@ def _library_files(repo_root: Path) -> list[Path]:
     return sorted(f for package in ROOT_PACKAGES for f in (repo_root / package).rglob("*.py"))
 
 
+def _imported_module(node: ast.ImportFrom, package: str) -> str:
+    """The absolute name of the module a ``from … import`` in `package` imports from."""
+    base = node.module or ""
+    if node.level:
+        anchor = package.rsplit(".", node.level - 1)[0]
+        base = f"{anchor}.{base}" if base else anchor
+    return base
+
+
 def _imports_inside_functions(path: Path, module: str) -> list[tuple[int, str]]:
     """(line, imported module) of first-party imports inside functions of `path`."""
     found: list[tuple[int, str]] = []
@@ -71,11 +80,7 @@ def _imports_inside_functions(path: Path, module: str) -> list[tuple[int, str]]:
             if inside and isinstance(child, ast.Import):
                 found.extend((child.lineno, alias.name) for alias in child.names)
             elif inside and isinstance(child, ast.ImportFrom):
-                base = child.module or ""
-                if child.level:
-                    anchor = package.rsplit(".", child.level - 1)[0]
-                    base = f"{anchor}.{base}" if base else anchor
-                found.append((child.lineno, base))
+                found.append((child.lineno, _imported_module(child, package)))
             is_function = isinstance(child, ast.FunctionDef | ast.AsyncFunctionDef)
             visit(child, inside or is_function)
 
@@ -151,10 +156,7 @@ def _private_imports(path: Path, module: str, repo_root: Path) -> list[tuple[int
     found = []
     for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
         if isinstance(node, ast.ImportFrom):
-            base = node.module or ""
-            if node.level:
-                anchor = package.rsplit(".", node.level - 1)[0]
-                base = f"{anchor}.{base}" if base else anchor
+            base = _imported_module(node, package)
             names = [f"{base}.{alias.name}" for alias in node.names]
         elif isinstance(node, ast.Import):
             names = [alias.name for alias in node.names]

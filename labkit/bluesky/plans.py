@@ -37,6 +37,7 @@ import labkit
 from labkit.bluesky.devices import LabkitCamera, LabkitSlider, LabkitStage, frame_from_reading
 from labkit.errors import ConfigError
 from labkit.frame import Frame, FrameKey
+from labkit.protocol import drive_within
 from labkit.protocol.plan import build_plan, validate_plan
 from labkit.protocol.steps import (
     Acquire,
@@ -171,12 +172,7 @@ def labkit_plan(
             shape=shape,
             serial=identity.serial,
         )
-        answer: Frame | None = None
-        try:
-            while True:
-                answer = yield from carry_out(steps.send(answer))
-        except StopIteration as finished:
-            brackets: dict[tuple[str, str], list[float]] = finished.value
+        brackets = yield from drive_within(steps, carry_out)
         statistics = dict(camera.camera.stream_statistics())
         yield from bps.mv(note.scene, "", note.illumination, "", note.text, json.dumps(statistics))
         yield from bps.trigger_and_read([note], name=STATISTICS)

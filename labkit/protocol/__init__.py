@@ -1,7 +1,7 @@
 """The capture protocol (thesis Algorithm 10): plan, auto-bracketing, stage, the protocol's
 steps (:mod:`~labkit.protocol.steps`) and the engine that carries them out."""
 
-from labkit.protocol._generators import drive
+from labkit.protocol._generators import drive, drive_within
 from labkit.protocol.bracketing import (
     BracketChoice,
     auto_bracketing,
@@ -57,6 +57,7 @@ __all__ = [
     "choose_exposures",
     "configure_camera",
     "drive",
+    "drive_within",
     "estimate_rates",
     "exposure_label",
     "exposure_ladder",
