@@ -77,7 +77,7 @@ venv: $(STAMP)
 $(STAMP): pyproject.toml $(LOCK) | system-deps
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -c $(LOCK) -e ".[gige,genicam,xarray,bluesky,docs,dev]"
+	$(PY) -m pip install --quiet -c $(LOCK) -e ".[gige,genicam,xarray,bluesky,tiled,docs,dev]"
 	@touch $(STAMP)
 
 # Newest versions within pyproject.toml's ranges, for every platform and Python ≥ 3.11
@@ -85,7 +85,7 @@ $(STAMP): pyproject.toml $(LOCK) | system-deps
 lock:
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet "$(UV)"
-	$(VENV)/bin/uv pip compile pyproject.toml --extra gige --extra genicam --extra xarray --extra bluesky --extra docs --extra dev \
+	$(VENV)/bin/uv pip compile pyproject.toml --extra gige --extra genicam --extra xarray --extra bluesky --extra tiled --extra docs --extra dev \
 	  --universal --python-version 3.11 --custom-compile-command "make lock" \
 	  --quiet $(LOCK_FLAGS) -o $(LOCK)
 

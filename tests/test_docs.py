@@ -165,7 +165,7 @@ def test_the_guide_ran_as_written_when_the_site_was_built(repo_root: Path) -> No
     what its blocks printed. ``guide-runs.json`` records each page's run."""
     html = _site(repo_root)
     runs = json.loads((html / "guide-runs.json").read_text(encoding="utf-8"))
-    expected = {"guide/simulated-rig", "guide/capture", "guide/calibration"}
+    expected = {"guide/simulated-rig", "guide/capture", "guide/bluesky", "guide/calibration"}
     expected |= {"guide/reconstruction", "python-api"}
     assert expected <= set(runs), sorted(runs)
     for page, run in runs.items():

@@ -34,9 +34,10 @@ def test_every_requirement_of_the_installed_extras_is_pinned(repo_root: Path) ->
     assert not missing, f"not pinned in requirements.lock (run `make lock`): {missing}"
 
 
-@pytest.mark.parametrize("extra", ["docs", "bluesky", "xarray"])
+@pytest.mark.parametrize("extra", ["docs", "bluesky", "tiled", "xarray"])
 def test_the_core_install_stays_lean(repo_root: Path, extra: str) -> None:
-    """Sphinx, Bluesky and xarray are extras: `pip install labkit` does not pull them in."""
+    """Sphinx, Bluesky (ophyd, ophyd-async), Tiled and xarray are extras: `pip install
+    labkit` does not pull them in."""
     project = tomllib.loads((repo_root / "pyproject.toml").read_text())["project"]
     core = {package(r) for r in project["dependencies"]}
     optional = {package(r) for r in project["optional-dependencies"][extra]}
@@ -47,15 +48,17 @@ BLOCK_EXTRAS = """
 import importlib.abc, sys
 class Block(importlib.abc.MetaPathFinder):
     def find_spec(self, name, path=None, target=None):
-        if name.split(".")[0] in {"sphinx", "bluesky", "ophyd", "xarray", "pandas"}:
+        if name.split(".")[0] in {"sphinx", "bluesky", "ophyd", "ophyd_async", "event_model",
+                                  "tiled", "bluesky_tiled_plugins", "xarray", "pandas"}:
             raise ModuleNotFoundError(f"No module named {name!r} (blocked)")
 sys.meta_path.insert(0, Block())
 """
 
 
 def test_labkit_works_without_its_extras(repo_root: Path, tmp_path: Path) -> None:
-    """With Sphinx, Bluesky, ophyd and xarray unimportable, the library and every command
-    still load, and a spectral image is written and read; only to_xarray needs its extra."""
+    """With Sphinx, Bluesky, ophyd, ophyd-async, Tiled and xarray unimportable, the library
+    and every command still load, and a spectral image is written and read; only to_xarray
+    needs its extra."""
     code = BLOCK_EXTRAS + (
         "import numpy as np, labkit.cli, reconstruction, calibration\n"
         "from labkit.errors import ConfigError\n"

@@ -6,12 +6,15 @@ simulator's rendering time, or ≥ 80 % of the disk's own sequential write rate 
 disk is slower than that. The storage case replays pre-rendered frames through the real
 engine (slider moves on the pty simulator, manifest, TIFF, sha256, fsync); the protocol
 case runs the thesis plan on the simulated rig in ``--fast`` mode, rendering included.
+The storage case also runs through a Bluesky RunEngine with the ophyd-async devices, in
+turns with the engine on the same frames; target (issue 56): ≥ 0.8× the engine's rate.
 """
 
 from __future__ import annotations
 
 import os
 import shutil
+import statistics
 import tempfile
 import time
 from dataclasses import replace
@@ -28,6 +31,7 @@ from labkit.session import Session
 TARGET_FRAMES_PER_S = 15.0
 TARGET_DISK_FRACTION = 0.8
 STORAGE_FRAMES = 90
+TARGET_BLUESKY_FRACTION = 0.8
 
 
 def disk_write_rate(folder: Path, *, total_mb: int = 1024, chunk_mb: int = 10) -> float:
@@ -141,6 +145,66 @@ def auto_bracketing_counts(rig: Rig) -> dict[str, Any]:
     return counts
 
 
+def _bluesky_storage_case(
+    work: Path, rig: Rig, hw: Any, camera: ReplayCamera, engine_store: Any, repeats: int
+) -> Measurement | None:
+    """The storage case through a RunEngine and the ophyd-async devices, timed in turns
+    with ``labkit capture``'s engine on the same frames; target: ≥ 0.8× its rate."""
+    try:
+        from bluesky import RunEngine
+
+        from labkit.bluesky import (
+            LightCover,
+            ScenePositioner,
+            SessionDetector,
+            SessionTarget,
+            SliderPositioner,
+            capture_protocol,
+        )
+    except ImportError:
+        return None
+    engine = RunEngine({})
+    counter = iter(range(1000))
+    names = {slot: p.name for slot, p in rig.slider.positions.items()}
+    slider_facts = {"port": hw.slider.port, "identity": hw.slider.identity}
+
+    def store() -> None:
+        folder = work / f"bluesky{next(counter)}"
+        detector = SessionDetector(camera, SessionTarget(folder, rig, slider_facts))  # type: ignore[arg-type]
+        engine(
+            capture_protocol(
+                detector,
+                SliderPositioner(hw.slider, names, name="slider"),
+                ScenePositioner(hw.stage, list(rig.plan.scenes), name="scene"),
+                LightCover(hw.stage, name="cover"),
+            )
+        )
+        shutil.rmtree(folder)
+
+    engine_times, times = [], []
+    for _ in range(repeats):  # in turns, so that both see the same machine
+        for run, into in ((engine_store, engine_times), (store, times)):
+            start = time.perf_counter()
+            run()
+            into.append(time.perf_counter() - start)
+    engine_s, bluesky_s = statistics.median(engine_times), statistics.median(times)
+    case = Measurement(
+        f"store {STORAGE_FRAMES} full frames through Bluesky (ophyd-async, RunEngine)",
+        bluesky_s,
+        times,
+        0.0,
+        target_s=engine_s / TARGET_BLUESKY_FRACTION,
+        passed=bluesky_s <= engine_s / TARGET_BLUESKY_FRACTION,
+    )
+    case.extra = {
+        "frames_per_s": STORAGE_FRAMES / bluesky_s,
+        "engine_frames_per_s": STORAGE_FRAMES / engine_s,
+        "engine_times_s": engine_times,
+        "rate_vs_labkit_capture": engine_s / bluesky_s,
+    }
+    return case
+
+
 def bench_capture(rig_path: str | Path, *, repeats: int = 1) -> tuple[list[Measurement], list[str]]:
     """Disk rate, storage rate of full-size frames, and the full thesis protocol (--fast)."""
     rig = load_rig(rig_path)
@@ -172,6 +236,7 @@ def bench_capture(rig_path: str | Path, *, repeats: int = 1) -> tuple[list[Measu
                 repeats=max(repeats, 3),
                 target_s=target_s,
             )
+            bluesky = _bluesky_storage_case(work, store_rig, hw, camera, store, max(repeats, 3))
         rate = STORAGE_FRAMES / case.seconds
         case.extra = {
             "frames_per_s": rate,
@@ -181,6 +246,10 @@ def bench_capture(rig_path: str | Path, *, repeats: int = 1) -> tuple[list[Measu
             "required_mb_per_s": floor,
         }
         cases.append(case)
+        if bluesky is None:
+            notes.append("Bluesky storage case skipped: labkit[bluesky] is not installed.")
+        else:
+            cases.append(bluesky)
 
         # the thesis' fixed lists (ExposureConfig's defaults), whatever the rig file plans
         thesis = rig.with_changes({"plan": {"exposures_s": ExposureConfig().model_dump()}})

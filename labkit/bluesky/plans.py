@@ -35,6 +35,7 @@ from ophyd import Component, Device, Signal
 
 import labkit
 from labkit.bluesky.devices import LabkitCamera, LabkitSlider, LabkitStage, frame_from_reading
+from labkit.bluesky.streams import BRACKETS, METERING, PRIMARY, STATISTICS
 from labkit.errors import ConfigError
 from labkit.frame import Frame, FrameKey
 from labkit.protocol import drive_within
@@ -50,12 +51,6 @@ from labkit.protocol.steps import (
 )
 from labkit.rig import Rig
 from labkit.session.store import plan_fingerprint, rig_snapshot
-
-PRIMARY = "primary"
-METERING = "labkit_metering"
-BRACKETS = "labkit_brackets"
-STATISTICS = "labkit_statistics"
-"""Names of the event streams :func:`labkit_plan` emits."""
 
 
 class FrameLabel(Device):

@@ -19,7 +19,7 @@ from typing import Any
 from bluesky.callbacks.core import CallbackBase
 
 from labkit.bluesky.devices import frame_from_reading
-from labkit.bluesky.plans import BRACKETS, PRIMARY, STATISTICS
+from labkit.bluesky.streams import BRACKETS, PRIMARY, STATISTICS
 from labkit.errors import DataError
 from labkit.frame import DARK, FrameKey
 from labkit.io.plain import now_iso

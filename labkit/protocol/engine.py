@@ -19,9 +19,9 @@ from labkit.devices.camera import Camera
 from labkit.devices.slider import FilterSlider
 from labkit.errors import LabkitError
 from labkit.frame import Frame
-from labkit.io.plain import now_iso
 from labkit.protocol._generators import drive
 from labkit.protocol.bracketing import BracketChoice
+from labkit.protocol.capture_run import CaptureRun
 from labkit.protocol.plan import Meter, Plan, build_plan, validate_plan
 from labkit.protocol.stage import Stage
 from labkit.protocol.steps import (
@@ -128,41 +128,34 @@ class Engine:
 
     def run(self) -> CaptureReport:
         """Capture every missing frame; returns a report. Raises CaptureStopped on stop."""
-        session = self.session
         started = time.perf_counter()
         plan = self.plan()
         validate_plan(plan, self.camera, self.slider)
         configure_camera(self.camera, self.rig)
         self._shape = self.camera.shape  # read once: a device round-trip on real cameras
         self._serial = self.camera.identity.serial
-        session.remove_leftovers()
-        problems = session.verify()
-        if problems:
-            session.forget(problems)
-            session.log("recapture", frames=problems)
-        stored_before = len(session.records)
-        self._bytes_before = session.stored_bytes()
-        session.info["camera"] = self.camera.identity.as_dict()
-        session.info["slider"] = {"port": self.slider.port, "identity": self.slider.identity}
-        session.info.setdefault("runs", []).append(
-            {"started": now_iso(), "resumed_with": stored_before}
+        run = CaptureRun(
+            self.session,
+            self.camera,
+            {"port": self.slider.port, "identity": self.slider.identity},
         )
-        session.set_status("running")
-        self._continue_frame_ids()
-        report = CaptureReport("running", plan.frame_count, stored_before, 0, recaptured=problems)
+        problems = run.begin()
+        report = CaptureReport(
+            "running", plan.frame_count, run.stored_before, 0, recaptured=problems
+        )
         try:
-            with FrameWriter(session, workers=self.writer_workers) as writer:
+            with FrameWriter(self.session, workers=self.writer_workers) as writer:
                 self._run_plan(writer, report)
         except CaptureStopped as stop:
-            self._finish(report, "stopped", str(stop), started)
+            self._finish(run, report, "stopped", str(stop), started)
             raise
         except LabkitError as error:
-            self._finish(report, "failed", str(error), started)
+            self._finish(run, report, "failed", str(error), started)
             raise
         except BaseException as error:
-            self._finish(report, "failed", f"{type(error).__name__}: {error}", started)
+            self._finish(run, report, "failed", f"{type(error).__name__}: {error}", started)
             raise
-        self._finish(report, "complete", None, started)
+        self._finish(run, report, "complete", None, started)
         return report
 
     # -- the loop: Algorithm 10's requests, carried out on the devices ------------------------
@@ -229,13 +222,7 @@ class Engine:
         )
         report.brackets[f"{step.scene}/{step.illumination}"] = choice.summary()
 
-    # -- set-up and finish ---------------------------------------------------------------------
-    def _continue_frame_ids(self) -> None:
-        """A simulated camera draws noise by frame id: never reuse one within a session."""
-        if hasattr(self.camera, "next_frame_id") and self.session.records:
-            last = max(int(r.get("frame_id") or 0) for r in self.session.records.values())
-            self.camera.next_frame_id = max(self.camera.next_frame_id, last + 1)
-
+    # -- finish ------------------------------------------------------------------------------
     def _check_stop(self) -> None:
         if self.stop.is_set():
             raise CaptureStopped(
@@ -243,15 +230,11 @@ class Engine:
                 f"run the same command again to resume session {self.session.folder}"
             )
 
-    def _finish(self, report: CaptureReport, status: str, reason: str | None, t0: float) -> None:
+    def _finish(
+        self, run: CaptureRun, report: CaptureReport, status: str, reason: str | None, t0: float
+    ) -> None:
+        run.finish(status, reason)
         report.status = status
         report.elapsed_s = time.perf_counter() - t0
-        report.stored_now = len(self.session.records) - report.stored_before
-        report.bytes_written = self.session.stored_bytes() - self._bytes_before
-        session = self.session
-        session.info["stream_statistics"] = dict(self.camera.stream_statistics())
-        session.info["runs"][-1].update(
-            {"stopped": now_iso(), "status": status, "stored": report.stored_now}
-        )
-        session.log("finish", status=status, reason=reason, stored=report.stored_now)
-        session.set_status(status, reason)
+        report.stored_now = run.stored_now
+        report.bytes_written = run.bytes_written

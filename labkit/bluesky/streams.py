@@ -1,0 +1,10 @@
+"""Names of the event streams labkit's Bluesky plans emit."""
+
+PRIMARY = "primary"
+"""One event per frame stored in the session."""
+METERING = "labkit_metering"
+"""The metering frames of auto-bracketing."""
+BRACKETS = "labkit_brackets"
+"""Each auto-bracketing choice."""
+STATISTICS = "labkit_statistics"
+"""The camera's stream counters at the end of a run (:func:`labkit.bluesky.labkit_plan`)."""
