@@ -50,6 +50,7 @@ COMMANDS: dict[str, Command] = {
     "export": Command(
         "labkit.cli.export", "convert a spectral image between spectral EXR and ENVI"
     ),
+    "serve": Command("labkit.cli.serve", "serve a folder's sessions, EXRs and models with Tiled"),
     "sim": Command("labkit.cli.sim", "the simulated rig"),
     "demo": Command(
         "labkit.cli.demo",
