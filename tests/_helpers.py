@@ -148,3 +148,25 @@ def lens_model_file(path: Path, shape: tuple[int, int], direction: str = "from_r
         keypoints, direction=direction, max_degree_xy=2, max_degree_lambda=2, folds=2
     )
     return model.save(path)
+
+
+def assert_verified_and_merged_alike(session, folder: Path, capsys, *, images: int) -> None:
+    """`session` (a Bluesky capture in ``folder/bluesky``) verifies clean and complete, and
+    ``labkit hdr`` merges it into the same `images` HDR images, bit for bit, as the
+    ``labkit capture`` session in ``folder/engine``."""
+    from labkit.cli import main
+    from labkit.io import read_raw_exr
+
+    capsys.readouterr()
+    assert main(["session", "show", str(session.folder), "--verify"]) == 0
+    shown = capsys.readouterr().out
+    assert f"all {len(session.records)} frames match their sha256" in shown
+    assert "status    complete" in shown and "(0 missing)" in shown
+    for name in ("bluesky", "engine"):
+        assert main(["hdr", str(folder / name), "--out", str(folder / f"hdr-{name}"),
+                     "--no-preview"]) == 0  # fmt: skip
+    merged = sorted((folder / "hdr-engine").rglob("*.exr"))
+    assert len(merged) == images
+    for path in merged:
+        twin = folder / "hdr-bluesky" / path.relative_to(folder / "hdr-engine")
+        np.testing.assert_array_equal(read_raw_exr(twin).raw, read_raw_exr(path).raw)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Self
 
 from labkit.bluesky.detector import SessionDetector, SessionTarget
 from labkit.bluesky.devices import LabkitCamera, LabkitSlider, LabkitStage
@@ -13,24 +14,30 @@ from labkit.protocol.hardware import Hardware, open_hardware
 from labkit.rig import Rig
 
 
-@dataclass
-class BlueskyDevices:
-    """The ophyd devices of an opened rig; close with :meth:`close` or a ``with`` block."""
+class _OpenHardware:
+    """Devices over an opened rig's hardware; close with :meth:`close` or a ``with`` block."""
 
-    camera: LabkitCamera
-    slider: LabkitSlider
-    stage: LabkitStage
     hardware: Hardware
 
     def close(self) -> None:
         """Close the camera, the slider and any simulator."""
         self.hardware.close()
 
-    def __enter__(self) -> BlueskyDevices:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+@dataclass
+class BlueskyDevices(_OpenHardware):
+    """The ophyd devices of an opened rig; close with :meth:`close` or a ``with`` block."""
+
+    camera: LabkitCamera
+    slider: LabkitSlider
+    stage: LabkitStage
+    hardware: Hardware
 
 
 def open_devices(
@@ -67,7 +74,7 @@ def open_devices(
 
 
 @dataclass
-class SessionDevices:
+class SessionDevices(_OpenHardware):
     """The ophyd-async devices of an opened rig; close with :meth:`close` or a ``with``
     block."""
 
@@ -76,16 +83,6 @@ class SessionDevices:
     scene: ScenePositioner
     cover: LightCover
     hardware: Hardware
-
-    def close(self) -> None:
-        """Close the camera, the slider and any simulator."""
-        self.hardware.close()
-
-    def __enter__(self) -> SessionDevices:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 def open_session_devices(

@@ -9,13 +9,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from _helpers import quick_plan
+from _helpers import assert_verified_and_merged_alike, quick_plan
 from bluesky import RunEngine
 
 from labkit.bluesky import SessionWriter, labkit_plan, open_devices
 from labkit.cli import main
 from labkit.errors import ConfigError, DeviceError
-from labkit.io import read_raw_exr, read_raw_tiff
+from labkit.io import read_raw_tiff
 from labkit.protocol import Engine
 from labkit.protocol.hardware import open_hardware
 from labkit.rig import load_rig
@@ -65,19 +65,7 @@ def test_a_bluesky_capture_is_a_labkit_session_that_merges_like_labkit_capture(
         expected, _ = read_raw_tiff(reference.folder / record["file"])
         np.testing.assert_array_equal(image, expected, err_msg=key)
 
-    capsys.readouterr()
-    assert main(["session", "show", str(session.folder), "--verify"]) == 0
-    shown = capsys.readouterr().out
-    assert f"all {len(session.records)} frames match their sha256" in shown
-    assert "status    complete" in shown and "(0 missing)" in shown
-    for name in ("bluesky", "engine"):
-        assert main(["hdr", str(tmp_path / name), "--out", str(tmp_path / f"hdr-{name}"),
-                     "--no-preview"]) == 0  # fmt: skip
-    merged = sorted((tmp_path / "hdr-engine").rglob("*.exr"))
-    assert len(merged) == 2 * 3  # 2 scenes × 3 illuminations
-    for path in merged:
-        twin = tmp_path / "hdr-bluesky" / path.relative_to(tmp_path / "hdr-engine")
-        np.testing.assert_array_equal(read_raw_exr(twin).raw, read_raw_exr(path).raw)
+    assert_verified_and_merged_alike(session, tmp_path, capsys, images=2 * 3)
 
     # the documents: start metadata, and one primary event per stored frame
     names = [name for name, _ in documents]

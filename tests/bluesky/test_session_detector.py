@@ -15,7 +15,7 @@ import bluesky.plan_stubs as bps
 import numpy as np
 import pytest
 import yaml
-from _helpers import quick_plan
+from _helpers import assert_verified_and_merged_alike, quick_plan
 from bluesky import RunEngine
 from bluesky.utils import FailedStatus
 from event_model import DocumentNames, schema_validators
@@ -33,7 +33,7 @@ from labkit.bluesky import (
 from labkit.cli import main
 from labkit.errors import ConfigError, DeviceError
 from labkit.frame import DARK
-from labkit.io import read_raw_exr, read_raw_tiff
+from labkit.io import read_raw_tiff
 from labkit.rig import load_rig
 from labkit.session import Session
 
@@ -90,19 +90,7 @@ def test_a_bluesky_capture_is_the_session_labkit_capture_writes(
               for s in (session, reference)]  # fmt: skip
     assert events[0] == events[1]
 
-    capsys.readouterr()
-    assert main(["session", "show", str(session.folder), "--verify"]) == 0
-    shown = capsys.readouterr().out
-    assert f"all {len(session.records)} frames match their sha256" in shown
-    assert "status    complete" in shown and "(0 missing)" in shown
-    for name in ("bluesky", "engine"):
-        assert main(["hdr", str(tmp_path / name), "--out", str(tmp_path / f"hdr-{name}"),
-                     "--no-preview"]) == 0  # fmt: skip
-    merged = sorted((tmp_path / "hdr-engine").rglob("*.exr"))
-    assert len(merged) == 2 * 3  # 2 scenes × 3 illuminations
-    for path in merged:
-        twin = tmp_path / "hdr-bluesky" / path.relative_to(tmp_path / "hdr-engine")
-        np.testing.assert_array_equal(read_raw_exr(twin).raw, read_raw_exr(path).raw)
+    assert_verified_and_merged_alike(session, tmp_path, capsys, images=2 * 3)
 
     _check_documents(documents, session)
 
