@@ -433,3 +433,58 @@ def test_lossy_link_session_completes_or_stops_resumably(lossy_fake_gv, tmp_path
         assert record["status"] == "SUCCESS"
         assert record["exposure_readback_s"] == pytest.approx(record["exposure_s"], rel=1e-3)
     assert session.verify() == {}
+
+
+def test_a_bluesky_capture_through_the_gige_camera(fake_gv, tmp_path: Path) -> None:
+    """The ophyd-async detector over a GigE camera (Aravis, the fake camera on 127.0.0.1)
+    with a RunEngine: the whole plan lands in the session with every frame checked, and
+    each stored frame is one stream resource naming its file."""
+    pytest.importorskip("ophyd_async", reason="labkit[bluesky] is not installed")
+    from bluesky import RunEngine
+
+    from labkit.bluesky import (
+        LightCover,
+        ScenePositioner,
+        SessionDetector,
+        SessionTarget,
+        SliderPositioner,
+        capture_protocol,
+    )
+    from labkit.protocol import OperatorStage
+    from labkit.protocol.hardware import _start_simulator, open_slider
+    from labkit.session import Session
+
+    rig = _gige_rig(fake_gv.device_id)
+    folder = tmp_path / "session"
+    documents: list[tuple[str, dict]] = []
+    engine = RunEngine({})
+    engine.subscribe(lambda name, doc: documents.append((name, doc)))
+    simulator = _start_simulator(rig, fast=True, on_move=None)
+    try:
+        with (
+            AravisCamera(fake_gv.device_id, pixel_format="BayerRG8") as cam,
+            open_slider(rig, port=simulator.port) as slider,
+        ):
+            cam.set("Width", 128)
+            cam.set("Height", 48)
+            stage = OperatorStage(assume_done=True, out=io.StringIO())
+            names = {slot: p.name for slot, p in rig.slider.positions.items()}
+            facts = {"port": slider.port, "identity": slider.identity}
+            engine(
+                capture_protocol(
+                    SessionDetector(cam, SessionTarget(folder, rig, facts)),
+                    SliderPositioner(slider, names, name="slider"),
+                    ScenePositioner(stage, ["target"], name="scene"),
+                    LightCover(stage, name="cover"),
+                )
+            )
+    finally:
+        simulator.stop()
+    session = Session.open(folder)
+    assert session.status == "complete" and len(session.records) == 90
+    assert session.info["camera"]["serial"] == "LK01" and session.verify() == {}
+    for record in session.records.values():
+        assert record["status"] == "SUCCESS" and record["shape"] == [48, 128]
+        assert record["exposure_readback_s"] == pytest.approx(record["exposure_s"], rel=1e-3)
+    resources = [doc for name, doc in documents if name == "stream_resource"]
+    assert sorted(r["parameters"]["labkit_key"] for r in resources) == sorted(session.records)
