@@ -70,6 +70,17 @@ def _path(data_uri: str) -> Path:
     return Path(path_from_uri(data_uri)) if "://" in data_uri else Path(data_uri)
 
 
+class _FromFile:
+    """Built from its one file (or folder), also when a Tiled catalog asks."""
+
+    @classmethod
+    def from_catalog(cls, data_source: Any, node: Any, /, **kwargs: Any) -> Any:
+        """The adapter of a node registered in a Tiled catalog (``tiled register``, ``tiled
+        serve directory``): read from its file again."""
+        (asset,) = [a for a in data_source.assets if a.parameter == "data_uri"]
+        return cls.from_uris(asset.data_uri)  # type: ignore[attr-defined]
+
+
 def _frame_adapter(folder: Path, record: dict[str, Any]) -> ArrayAdapter:
     path = folder / record["file"]
     shape = tuple(int(n) for n in record["shape"])
@@ -81,7 +92,7 @@ def _frame_adapter(folder: Path, record: dict[str, Any]) -> ArrayAdapter:
     )
 
 
-class SessionAdapter(MapAdapter):
+class SessionAdapter(_FromFile, MapAdapter):
     """A capture session: ``frames`` (nested like the frames' files) with each frame's
     record, and ``session.yaml`` as metadata."""
 
@@ -107,7 +118,7 @@ def _containers(tree: dict[str, Any]) -> MapAdapter:
     return MapAdapter({k: _containers(v) if isinstance(v, dict) else v for k, v in tree.items()})
 
 
-class RawExrAdapter(DatasetAdapter):
+class RawExrAdapter(_FromFile, DatasetAdapter):
     """An HDR raw (or raw) EXR: ``raw`` and, when stored, ``variance``."""
 
     @classmethod
@@ -128,7 +139,7 @@ class RawExrAdapter(DatasetAdapter):
         return cls.from_dataset(dataset, specs=[Spec("labkit_raw_exr")])  # type: ignore[return-value]
 
 
-class SpectralExrAdapter(DatasetAdapter):
+class SpectralExrAdapter(_FromFile, DatasetAdapter):
     """A spectral EXR: ``spectral`` over ``y``, ``x``, ``wavelength`` (nm)."""
 
     @classmethod
@@ -148,7 +159,7 @@ class SpectralExrAdapter(DatasetAdapter):
         return cls.from_dataset(dataset, specs=[Spec("labkit_spectral_exr")])  # type: ignore[return-value]
 
 
-class DispersionModelAdapter(MapAdapter):
+class DispersionModelAdapter(_FromFile, MapAdapter):
     """A dispersion model file: the model (as written) as metadata."""
 
     @classmethod

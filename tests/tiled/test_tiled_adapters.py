@@ -136,3 +136,51 @@ def test_labkit_serve_refuses_what_it_cannot_serve(
     assert "is not a folder" in capsys.readouterr().err
     assert main(["serve", str(tmp_path), "--port", "70000"]) == 2
     assert "not a port number" in capsys.readouterr().err
+
+
+def test_labkits_adapters_serve_from_a_tiled_catalog(lab_folder: Path, tmp_path: Path) -> None:
+    """Registered in a Tiled catalog with labkit's mimetype hook and adapters (what ``tiled
+    serve directory --mimetype-hook labkit.tiled:detect_mimetype --adapter …`` does), the
+    files are served as by ``labkit serve``."""
+    import asyncio
+
+    import uvicorn
+    from tiled.catalog import from_uri as catalog_from_uri
+    from tiled.client.register import register
+    from tiled.config import Authentication
+    from tiled.server.app import build_app
+    from tiled.server.simple import ThreadedServer
+
+    from labkit.tiled import ADAPTERS_BY_MIMETYPE
+
+    catalog = catalog_from_uri(
+        tmp_path / "catalog.db",
+        writable_storage=[tmp_path / "data"],
+        readable_storage=[lab_folder],
+        init_if_not_exists=True,
+        adapters_by_mimetype=ADAPTERS_BY_MIMETYPE,
+    )
+    app = build_app(catalog, authentication=Authentication(single_user_api_key="key"))
+    config = uvicorn.Config(app, host="127.0.0.1", port=0, log_level="warning")
+    with ThreadedServer(config).run_in_thread() as uri:
+        client = from_uri(uri, api_key="key")
+        asyncio.run(
+            register(
+                client,
+                lab_folder,
+                mimetype_detection_hook="labkit.tiled:detect_mimetype",
+                adapters_by_mimetype=dict(ADAPTERS_BY_MIMETYPE),
+            )
+        )
+        assert sorted(client) == ["hdr", "lens", "recon", "sessions"]
+        session = Session.open(lab_folder / "sessions" / "day1")
+        record = session.records["disks/450/100ms/r001"]
+        served = client["sessions"]["day1"]["frames"]["disks"]["450"]["100ms"]["r001"]
+        np.testing.assert_array_equal(
+            served.read(), read_raw_tiff(session.folder / record["file"])[0]
+        )
+        spectral = client["recon"]["spectral"].read()
+        np.testing.assert_array_equal(spectral["wavelength"].values, WAVELENGTHS_NM)
+        image = read_raw_exr(lab_folder / "hdr" / "disks" / "450.exr")
+        np.testing.assert_array_equal(client["hdr"]["disks"]["450"].read()["raw"].values, image.raw)
+        assert client["lens"].metadata["kind"] == "labkit.dispersion_model"
