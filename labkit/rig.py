@@ -146,6 +146,10 @@ class SliderConfig(_Strict):
         """Names of all illuminations: unfiltered (open) positions first."""
         return [p.name for p in self.positions.values()]
 
+    def position_names(self) -> dict[int, str]:
+        """Slot → the name of the illumination that slot gives."""
+        return {slot: p.name for slot, p in self.positions.items()}
+
 
 class LightConfig(_Strict):
     """The light source."""

@@ -24,7 +24,7 @@ from typing import Any
 from labkit.bench.harness import Measurement, measure
 from labkit.frame import Frame
 from labkit.protocol import Engine, build_plan
-from labkit.protocol.hardware import open_hardware
+from labkit.protocol.hardware import Hardware, open_hardware
 from labkit.rig import ExposureConfig, Rig, load_rig
 from labkit.session import Session
 
@@ -146,39 +146,24 @@ def auto_bracketing_counts(rig: Rig) -> dict[str, Any]:
 
 
 def _bluesky_storage_case(
-    work: Path, rig: Rig, hw: Any, camera: ReplayCamera, engine_store: Any, repeats: int
+    work: Path, rig: Rig, hw: Hardware, camera: ReplayCamera, engine_store: Any, repeats: int
 ) -> Measurement | None:
     """The storage case through a RunEngine and the ophyd-async devices, timed in turns
     with ``labkit capture``'s engine on the same frames; target: ≥ 0.8× its rate."""
     try:
         from bluesky import RunEngine
 
-        from labkit.bluesky import (
-            LightCover,
-            ScenePositioner,
-            SessionDetector,
-            SessionTarget,
-            SliderPositioner,
-            capture_protocol,
-        )
+        from labkit.bluesky import capture_protocol, session_devices
     except ImportError:
         return None
     engine = RunEngine({})
     counter = iter(range(1000))
-    names = {slot: p.name for slot, p in rig.slider.positions.items()}
-    slider_facts = {"port": hw.slider.port, "identity": hw.slider.identity}
+    replayed = Hardware(camera, hw.slider, hw.stage)  # type: ignore[arg-type]
 
     def store() -> None:
         folder = work / f"bluesky{next(counter)}"
-        detector = SessionDetector(camera, SessionTarget(folder, rig, slider_facts))  # type: ignore[arg-type]
-        engine(
-            capture_protocol(
-                detector,
-                SliderPositioner(hw.slider, names, name="slider"),
-                ScenePositioner(hw.stage, list(rig.plan.scenes), name="scene"),
-                LightCover(hw.stage, name="cover"),
-            )
-        )
+        d = session_devices(rig, folder, replayed)
+        engine(capture_protocol(d.detector, d.slider, d.scene, d.cover))
         shutil.rmtree(folder)
 
     engine_times, times = [], []

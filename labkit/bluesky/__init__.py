@@ -32,6 +32,7 @@ from labkit.bluesky.hardware import (
     SessionDevices,
     open_devices,
     open_session_devices,
+    session_devices,
 )
 from labkit.bluesky.movables import LightCover, ScenePositioner, SliderPositioner
 from labkit.bluesky.plans import labkit_plan
@@ -65,5 +66,6 @@ __all__ = [
     "meter_frame",
     "open_devices",
     "open_session_devices",
+    "session_devices",
     "session_run",
 ]

@@ -275,7 +275,7 @@ def capture_protocol(
 
 
 def _check_devices(rig: Rig, slider: SliderPositioner, scene: ScenePositioner) -> None:
-    names = {slot: p.name for slot, p in rig.slider.positions.items()}
+    names = rig.slider.position_names()
     if names != slider.positions:
         raise ConfigError(
             f"slider device {slider.name!r} has positions {slider.positions}, the rig "

@@ -55,8 +55,7 @@ from ophyd_async.core import (
 from labkit.devices.camera import Camera
 from labkit.errors import ConfigError, DeviceError
 from labkit.frame import DARK, Frame, FrameKey
-from labkit.protocol.capture_run import CaptureRun
-from labkit.protocol.plan import build_plan
+from labkit.protocol.capture_run import CaptureRun, plan_shortfall, resume_hint
 from labkit.protocol.steps import check_frame
 from labkit.rig import Rig
 from labkit.session.store import FrameWriter, Session
@@ -114,12 +113,17 @@ class _Acquisition:
         self.stored: list[FrameKey] = []
         self.attempts = 0
         self.grabbed, self.set_grabbed = soft_signal_r_and_setter(int, 0)
+        self.shape: tuple[int, int] = (0, 0)
+        self.serial = ""
 
     def restart(self) -> None:
-        """A new session run: no frame stored by it yet."""
+        """A new session run: no frame stored by it yet. The camera's shape and serial are
+        read once here, not per frame (each is a device round-trip on a real camera)."""
         self.stored = []
         self.attempts = 0
         self.set_grabbed(0)
+        self.shape = self.camera.shape
+        self.serial = self.camera.identity.serial
 
     async def grab(self) -> Frame:
         exposure_s = float(await self.exposure_s.get_value())
@@ -176,17 +180,13 @@ class _SessionStore:
             writer.close()
         except Exception as error:  # the frame that failed to store is missing: resumable
             self.failure = self.failure or f"storing frames failed: {type(error).__name__}: {error}"
-        plan = build_plan(session.rig, session.brackets)
-        missing = sum(not session.has(k) for k in plan.keys())
-        if self.failure is None and not missing and not plan.pending_meters:
+        shortfall = plan_shortfall(session)
+        if self.failure is None and shortfall is None:
             run.finish("complete", None)
             return
-        left = [f"{missing} planned frame(s) missing"] if missing else []
-        if plan.pending_meters:
-            left.append(f"{plan.pending_meters} illumination(s) not yet metered")
-        reason = self.failure or f"the run ended with {' and '.join(left)}"
-        reason += f"; resume with `labkit capture --session {session.folder}` and the same rig"
-        run.finish("failed" if self.failure else "stopped", reason)
+        reason = self.failure or f"the run ended with {shortfall}"
+        status = "failed" if self.failure else "stopped"
+        run.finish(status, f"{reason}; {resume_hint(session.folder)}")
 
 
 class _AcquireLogic(DetectorAcquireLogic):
@@ -209,8 +209,7 @@ class _AcquireLogic(DetectorAcquireLogic):
             raise ConfigError("the detector's session is not open: prepare or trigger it")
         try:
             frame = await acquisition.grab()
-            camera = acquisition.camera
-            check_frame(frame, key, shape=camera.shape, serial=camera.identity.serial)
+            check_frame(frame, key, shape=acquisition.shape, serial=acquisition.serial)
             store.writer.submit(key, frame)
             acquisition.last_frame = frame
             acquisition.stored.append(key)
@@ -243,7 +242,7 @@ class _FrameFiles(StreamableDataProvider):
         self.compose = ComposeStreamResource()
 
     async def make_datakeys(self, collections_per_event: int) -> dict[str, DataKey]:
-        rows, cols = self.acquisition.camera.shape
+        rows, cols = self.acquisition.shape
         return {
             self.name: DataKey(
                 source=self.folder_uri,
@@ -257,7 +256,7 @@ class _FrameFiles(StreamableDataProvider):
     async def make_stream_docs(
         self, collections_written: int, collections_per_event: int
     ) -> AsyncIterator[StreamAsset]:
-        rows, cols = self.acquisition.camera.shape
+        rows, cols = self.acquisition.shape
         while self.emitted < len(self.acquisition.stored):  # failed attempts have no file
             key = self.acquisition.stored[self.emitted]
             bundle = self.compose(

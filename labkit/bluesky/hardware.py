@@ -61,10 +61,9 @@ def open_devices(
     """
     hardware = open_hardware(rig, fast=fast, shape=shape, assume_done=assume_done)
     try:
-        names = {slot: p.name for slot, p in rig.slider.positions.items()}
         return BlueskyDevices(
             LabkitCamera(hardware.camera, name="camera"),
-            LabkitSlider(hardware.slider, names, name="slider"),
+            LabkitSlider(hardware.slider, rig.slider.position_names(), name="slider"),
             LabkitStage(hardware.stage, name="stage"),
             hardware,
         )
@@ -112,16 +111,24 @@ def open_session_devices(
     """
     hardware = open_hardware(rig, fast=fast, shape=shape, assume_done=assume_done)
     try:
-        slider_facts = {"port": hardware.slider.port, "identity": hardware.slider.identity}
-        target = SessionTarget(Path(session), rig, slider_facts, writer_workers)
-        names = {slot: p.name for slot, p in rig.slider.positions.items()}
-        return SessionDevices(
-            SessionDetector(hardware.camera, target, name="camera"),
-            SliderPositioner(hardware.slider, names, name="slider"),
-            ScenePositioner(hardware.stage, list(rig.plan.scenes), name="scene"),
-            LightCover(hardware.stage, name="cover"),
-            hardware,
-        )
+        return session_devices(rig, session, hardware, writer_workers=writer_workers)
     except BaseException:
         hardware.close()
         raise
+
+
+def session_devices(
+    rig: Rig, session: str | Path, hardware: Hardware, *, writer_workers: int = 2
+) -> SessionDevices:
+    """`hardware`, already open (a camera, slider and stage of your own, say), as the
+    ophyd-async devices :func:`open_session_devices` gives; closing them closes
+    `hardware`."""
+    slider_facts = {"port": hardware.slider.port, "identity": hardware.slider.identity}
+    target = SessionTarget(Path(session), rig, slider_facts, writer_workers)
+    return SessionDevices(
+        SessionDetector(hardware.camera, target, name="camera"),
+        SliderPositioner(hardware.slider, rig.slider.position_names(), name="slider"),
+        ScenePositioner(hardware.stage, list(rig.plan.scenes), name="scene"),
+        LightCover(hardware.stage, name="cover"),
+        hardware,
+    )

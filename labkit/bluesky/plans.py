@@ -106,7 +106,7 @@ def labkit_plan(
     shape = camera.camera.shape
     label = FrameLabel(name="frame")
     note = RunNote(name="note")
-    names = {slot: p.name for slot, p in rig.slider.positions.items()}
+    names = rig.slider.position_names()
     if names != slider.positions:
         raise ConfigError(
             f"slider device {slider.name!r} has positions {slider.positions}, the rig "

@@ -23,7 +23,7 @@ from labkit.bluesky.streams import BRACKETS, PRIMARY, STATISTICS
 from labkit.errors import DataError
 from labkit.frame import DARK, FrameKey
 from labkit.io.plain import now_iso
-from labkit.protocol.plan import build_plan
+from labkit.protocol.capture_run import plan_shortfall, resume_hint
 from labkit.rig import rig_from_dict
 from labkit.session.store import FrameWriter, Session, plan_fingerprint
 
@@ -115,19 +115,18 @@ class SessionWriter(CallbackBase):
             writer.close()
         except Exception as error:  # the frame that failed to store is missing: resumable
             failure = f"storing frames failed: {type(error).__name__}: {error}"
-        plan = build_plan(session.rig, session.brackets)
-        missing = sum(not session.has(k) for k in plan.keys())
+        shortfall = plan_shortfall(session)
         exit_status = doc.get("exit_status")
-        if failure is None and exit_status == "success" and not missing and not plan.pending_meters:
+        if failure is None and exit_status == "success" and shortfall is None:
             status, reason = "complete", None
         else:
             status = "failed" if exit_status == "fail" or failure else "stopped"
             reason = (
                 failure
                 or doc.get("reason")
-                or (f"the run ended ({exit_status}) with {missing} planned frame(s) missing")
+                or f"the run ended ({exit_status}) with {shortfall or '0 planned frame(s) missing'}"
             )
-            reason += f"; resume with `labkit capture --session {self.folder}` and the same rig"
+            reason += f"; {resume_hint(self.folder)}"
         stored = len(session.records)
         session.info["runs"][-1].update({"stopped": now_iso(), "status": status, "stored": stored})
         session.log("finish", status=status, reason=reason, stored=stored)

@@ -12,10 +12,12 @@ counters, the ``runs`` entry closed, a ``finish`` log line and the final status.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 from labkit.devices.camera import Camera
 from labkit.io.plain import now_iso
+from labkit.protocol.plan import build_plan
 from labkit.session.store import Session
 
 
@@ -81,3 +83,19 @@ class CaptureRun:
         )
         session.log("finish", status=status, reason=reason, stored=self.stored_now)
         session.set_status(status, reason)
+
+
+def plan_shortfall(session: Session) -> str | None:
+    """What `session` still lacks of its rig's plan, in words (frames missing,
+    illuminations not yet metered); None when it holds the whole plan."""
+    plan = build_plan(session.rig, session.brackets)
+    missing = sum(not session.has(key) for key in plan.keys())
+    left = [f"{missing} planned frame(s) missing"] if missing else []
+    if plan.pending_meters:
+        left.append(f"{plan.pending_meters} illumination(s) not yet metered")
+    return " and ".join(left) or None
+
+
+def resume_hint(folder: str | Path) -> str:
+    """How to finish a session that a run left unfinished."""
+    return f"resume with `labkit capture --session {folder}` and the same rig"

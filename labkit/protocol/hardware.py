@@ -116,7 +116,7 @@ def open_hardware(
         simulator = None
         sim_stage = None
         if rig.camera.backend == "sim":
-            names = {slot: p.name for slot, p in rig.slider.positions.items()}
+            names = rig.slider.position_names()
             sim_stage = SimStage(camera, names, prerender=rig.illuminations())  # type: ignore[arg-type]
         if rig.slider.port == "sim" or rig.slider.driver == "sim":
             simulator = _start_simulator(rig, fast=fast, on_move=sim_stage and sim_stage.slot_moved)

@@ -27,6 +27,7 @@ The values are labkit's own readers' (:func:`labkit.io.read_raw_exr`,
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -108,14 +109,41 @@ class SessionAdapter(_FromFile, MapAdapter):
                 node = node.setdefault(part, {})
             node[parts[-1]] = _frame_adapter(session.folder, record)
         return cls(
-            {"frames": _containers(tree)},
+            {"frames": nested_containers(tree)},
             metadata=_json(session.info),
             specs=[Spec("labkit_session")],
         )
 
 
-def _containers(tree: dict[str, Any]) -> MapAdapter:
-    return MapAdapter({k: _containers(v) if isinstance(v, dict) else v for k, v in tree.items()})
+def nested_containers(tree: Mapping[str, Any]) -> MapAdapter:
+    """A Tiled container of `tree`: a nested mapping becomes a container, a function (of
+    no arguments) is called for its adapter when a client first asks for that node, and an
+    adapter is served as it is."""
+    return MapAdapter(_OnDemand(tree))
+
+
+class _OnDemand(Mapping[str, Any]):
+    """The children of :func:`nested_containers`, each built once, when first asked for."""
+
+    def __init__(self, tree: Mapping[str, Any]) -> None:
+        self._tree = tree
+        self._built: dict[str, Any] = {}
+
+    def __getitem__(self, key: str) -> Any:
+        if key not in self._built:
+            value = self._tree[key]
+            if isinstance(value, Mapping):
+                value = nested_containers(value)
+            elif callable(value):
+                value = value()
+            self._built[key] = value
+        return self._built[key]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._tree)
+
+    def __len__(self) -> int:
+        return len(self._tree)
 
 
 class RawExrAdapter(_FromFile, DatasetAdapter):

@@ -8,14 +8,14 @@ containers; files it does not recognise are left out. ``labkit serve FOLDER`` se
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Mapping
+import functools
 from pathlib import Path
 from typing import Any
 
 from tiled.adapters.mapping import MapAdapter
 
 from labkit.errors import ConfigError
-from labkit.tiled.adapters import ADAPTERS_BY_MIMETYPE, detect_mimetype
+from labkit.tiled.adapters import ADAPTERS_BY_MIMETYPE, detect_mimetype, nested_containers
 
 
 def labkit_tree(folder: str | Path) -> MapAdapter:
@@ -35,14 +35,14 @@ def labkit_tree(folder: str | Path) -> MapAdapter:
         raise ConfigError(f"{folder} is not a folder; serve the folder that holds your data")
     node = _node(folder)
     if node is not None and not isinstance(node, dict):
-        return MapAdapter({folder.name or "data": node})
-    return _containers(node or {})
+        node = {folder.name or "data": node}  # the folder is one labkit file (a session)
+    return nested_containers(node or {})
 
 
 def _node(path: Path) -> Any:
     mimetype = detect_mimetype(path)
     if mimetype in ADAPTERS_BY_MIMETYPE:
-        return _Lazy(ADAPTERS_BY_MIMETYPE[mimetype], path)
+        return functools.partial(ADAPTERS_BY_MIMETYPE[mimetype].from_uris, path.resolve().as_uri())
     if not path.is_dir():
         return None
     children: dict[str, Any] = {}
@@ -54,39 +54,3 @@ def _node(path: Path) -> Any:
             continue
         children[stem if stems.count(stem) == 1 else entry.name] = child
     return children
-
-
-class _Lazy:
-    """A file's adapter, built when first asked for."""
-
-    def __init__(self, adapter_class: type, path: Path) -> None:
-        self.adapter_class = adapter_class
-        self.path = path
-
-
-class _LazyMapping(Mapping[str, Any]):
-    """Children built (and kept) when a client first asks for them."""
-
-    def __init__(self, tree: dict[str, Any]) -> None:
-        self._tree = tree
-        self._built: dict[str, Any] = {}
-
-    def __getitem__(self, key: str) -> Any:
-        if key not in self._built:
-            value = self._tree[key]
-            self._built[key] = (
-                _containers(value)
-                if isinstance(value, dict)
-                else value.adapter_class.from_uris(value.path.resolve().as_uri())
-            )
-        return self._built[key]
-
-    def __iter__(self) -> Iterator[str]:
-        return iter(self._tree)
-
-    def __len__(self) -> int:
-        return len(self._tree)
-
-
-def _containers(tree: dict[str, Any]) -> MapAdapter:
-    return MapAdapter(_LazyMapping(tree))

@@ -442,16 +442,9 @@ def test_a_bluesky_capture_through_the_gige_camera(fake_gv, tmp_path: Path) -> N
     pytest.importorskip("ophyd_async", reason="labkit[bluesky] is not installed")
     from bluesky import RunEngine
 
-    from labkit.bluesky import (
-        LightCover,
-        ScenePositioner,
-        SessionDetector,
-        SessionTarget,
-        SliderPositioner,
-        capture_protocol,
-    )
+    from labkit.bluesky import capture_protocol, session_devices
     from labkit.protocol import OperatorStage
-    from labkit.protocol.hardware import _start_simulator, open_slider
+    from labkit.protocol.hardware import Hardware, _start_simulator, open_slider
     from labkit.session import Session
 
     rig = _gige_rig(fake_gv.device_id)
@@ -468,16 +461,8 @@ def test_a_bluesky_capture_through_the_gige_camera(fake_gv, tmp_path: Path) -> N
             cam.set("Width", 128)
             cam.set("Height", 48)
             stage = OperatorStage(assume_done=True, out=io.StringIO())
-            names = {slot: p.name for slot, p in rig.slider.positions.items()}
-            facts = {"port": slider.port, "identity": slider.identity}
-            engine(
-                capture_protocol(
-                    SessionDetector(cam, SessionTarget(folder, rig, facts)),
-                    SliderPositioner(slider, names, name="slider"),
-                    ScenePositioner(stage, ["target"], name="scene"),
-                    LightCover(stage, name="cover"),
-                )
-            )
+            d = session_devices(rig, folder, Hardware(cam, slider, stage))
+            engine(capture_protocol(d.detector, d.slider, d.scene, d.cover))
     finally:
         simulator.stop()
     session = Session.open(folder)
